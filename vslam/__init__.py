@@ -1,0 +1,3 @@
+"""vslam: visual(-inertial) SLAM among moving objects, with reproducible evaluation."""
+
+__version__ = "0.1.0"

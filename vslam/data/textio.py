@@ -1,0 +1,95 @@
+"""Strict parsing of the whitespace/CSV text tables every benchmark uses.
+
+Every problem is reported as a DatasetError naming the file and 1-based line,
+so a user can open the file at the right place.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from vslam.errors import DatasetError
+
+
+def require_file(path: Path, what: str) -> Path:
+    if not path.is_file():
+        raise DatasetError(path, f"missing {what}")
+    return path
+
+
+def require_dir(path: Path, what: str) -> Path:
+    if not path.is_dir():
+        raise DatasetError(path, f"missing {what} folder")
+    return path
+
+
+def read_rows(
+    path: Path,
+    ncols: int | tuple[int, int],
+    *,
+    delimiter: str | None = None,
+    numeric_cols: int | None = None,
+    allow_nan: bool = False,
+) -> tuple[list[int], list[list[str]]]:
+    """Rows of a text table, skipping blank and '#' lines.
+
+    ncols: exact count, or (min, max) inclusive. numeric_cols: how many
+    leading columns must parse as finite floats (default: all).
+    Returns (line numbers, rows of stripped string fields).
+    """
+    require_file(path, "file")
+    lo, hi = (ncols, ncols) if isinstance(ncols, int) else ncols
+    want = f"{lo}" if lo == hi else f"{lo} to {hi}"
+    lines: list[int] = []
+    rows: list[list[str]] = []
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise DatasetError(path, "not a text file") from None
+    for i, raw in enumerate(text.splitlines(), start=1):
+        s = raw.strip()
+        if not s or s.startswith("#") or s.startswith("%"):
+            continue
+        fields = [f.strip() for f in s.split(delimiter)] if delimiter else s.split()
+        if fields and fields[-1] == "" and delimiter:
+            fields = fields[:-1]
+        if not lo <= len(fields) <= hi:
+            raise DatasetError(path, f"expected {want} columns, found {len(fields)}", i)
+        n_num = len(fields) if numeric_cols is None else numeric_cols
+        for j in range(n_num):
+            try:
+                v = float(fields[j])
+            except ValueError:
+                raise DatasetError(path, f"column {j + 1} is not a number: {fields[j]!r}", i) from None
+            if not allow_nan and not math.isfinite(v):
+                raise DatasetError(path, f"column {j + 1} is not finite: {fields[j]!r}", i)
+        lines.append(i)
+        rows.append(fields)
+    return lines, rows
+
+
+def read_numeric(path: Path, ncols: int | tuple[int, int], *, delimiter: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(line numbers (N,), values (N, ncols) float64) of an all-numeric table."""
+    lines, rows = read_rows(path, ncols, delimiter=delimiter)
+    if isinstance(ncols, tuple) and rows and len({len(r) for r in rows}) > 1:
+        first = len(rows[0])
+        bad = next(k for k, r in enumerate(rows) if len(r) != first)
+        raise DatasetError(path, f"expected {first} columns like the first row, found {len(rows[bad])}", lines[bad])
+    width = len(rows[0]) if rows else (ncols if isinstance(ncols, int) else ncols[0])
+    values = np.array([[float(v) for v in r] for r in rows], dtype=np.float64).reshape(-1, width)
+    return np.asarray(lines, dtype=np.int64), values
+
+
+def check_increasing(path: Path, t: np.ndarray, lines: np.ndarray, *, strict: bool = True) -> None:
+    """Raise at the first timestamp that does not increase (duplicates too when strict)."""
+    if len(t) < 2:
+        return
+    d = np.diff(t)
+    bad = np.flatnonzero(d <= 0 if strict else d < 0)
+    if len(bad):
+        k = int(bad[0]) + 1
+        kind = "repeats" if d[bad[0]] == 0 else "goes back in time"
+        raise DatasetError(path, f"timestamp {t[k]!r} {kind} (previous {t[k - 1]!r}); timestamps must increase", int(lines[k]))
