@@ -104,7 +104,7 @@ def read_trajectory(path: str | Path, fmt: str = "auto", times: str | Path | Non
             t = np.arange(len(v), dtype=np.float64)
     elif fmt == "euroc":
         lines, v = read_numeric(path, (8, 64), delimiter=",")
-        t = v[:, 0] * 1e-9 if len(v) and v[0, 0] > 1e12 else v[:, 0]
+        t = v[:, 0] * 1e-9  # the ASL format stores nanoseconds
         R = quat_wxyz_to_R(v[:, 4:8]) if len(v) else np.zeros((0, 3, 3))
         poses = _poses(R, v[:, 1:4])
     else:

@@ -1,0 +1,26 @@
+import numpy as np
+
+from vslam.geometry import R_to_quat_wxyz, inv_T, make_T, quat_wxyz_to_R, so3_exp, so3_log
+
+
+def test_inverse_and_quaternion_round_trip():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        R = so3_exp(rng.normal(size=3))
+        T = make_T(R, rng.normal(size=3))
+        np.testing.assert_allclose(T @ inv_T(T), np.eye(4), atol=1e-12)
+        q = R_to_quat_wxyz(R)
+        assert q[0] >= 0
+        np.testing.assert_allclose(quat_wxyz_to_R(q), R, atol=1e-12)
+        np.testing.assert_allclose(so3_exp(so3_log(R)), R, atol=1e-12)
+
+
+def test_quaternion_order_is_wxyz():
+    # 90 deg about z: (w, x, y, z) = (cos45, 0, 0, sin45)
+    R = quat_wxyz_to_R(np.array([np.sqrt(0.5), 0, 0, np.sqrt(0.5)]))
+    np.testing.assert_allclose(R @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+
+
+def test_inverse_of_stack():
+    Ts = np.stack([make_T(so3_exp([0, 0, a]), [a, 1, 2]) for a in (0.1, 0.2, 0.3)])
+    np.testing.assert_allclose(np.einsum("nij,njk->nik", Ts, inv_T(Ts)), np.tile(np.eye(4), (3, 1, 1)), atol=1e-12)

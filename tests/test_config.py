@@ -1,0 +1,66 @@
+from dataclasses import dataclass, field
+from typing import Literal
+
+import pytest
+
+from vslam.config import from_dict, load_config, parse_overrides
+from vslam.errors import ConfigError
+from vslam.pipeline import PipelineConfig
+
+
+@dataclass(frozen=True)
+class Inner:
+    a: int = 1
+    mode: Literal["x", "y"] = "x"
+
+
+@dataclass(frozen=True)
+class Outer:
+    inner: Inner = field(default_factory=Inner)
+    scale: float = 1.0
+    names: tuple[str, ...] = ()
+
+
+def test_defaults_and_overrides():
+    c = from_dict(Outer, {"inner": {"a": 3}, "scale": 2, "names": ["p", "q"]})
+    assert c.inner.a == 3 and c.inner.mode == "x" and c.scale == 2.0 and c.names == ("p", "q")
+
+
+def test_unknown_key_names_key_and_file():
+    with pytest.raises(ConfigError, match=r"cfg.yaml: unknown key 'inner.b'"):
+        from_dict(Outer, {"inner": {"b": 1}}, "cfg.yaml")
+
+
+def test_wrong_types_rejected():
+    with pytest.raises(ConfigError, match="'inner.a' must be an integer"):
+        from_dict(Outer, {"inner": {"a": "three"}})
+    with pytest.raises(ConfigError, match="'inner.mode' must be one of"):
+        from_dict(Outer, {"inner": {"mode": "z"}})
+    with pytest.raises(ConfigError, match="'scale' must be a number"):
+        from_dict(Outer, {"scale": True})
+
+
+def test_yaml_file_errors(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("dataset:\n  kind: [unclosed\n")
+    with pytest.raises(ConfigError, match="bad.yaml:"):
+        load_config(PipelineConfig, bad)
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(PipelineConfig, tmp_path / "missing.yaml")
+
+
+def test_every_shipped_config_loads():
+    from vslam.paths import REPO_ROOT
+
+    files = sorted((REPO_ROOT / "configs").glob("*.yaml"))
+    assert len(files) >= 5
+    for f in files:
+        if f.name == "bench.yaml" or f.name.startswith("train_"):
+            continue
+        PipelineConfig.load(f)
+
+
+def test_parse_overrides():
+    assert parse_overrides(["a.b=2", "c=x", "d=[1, 2]"]) == {"a": {"b": 2}, "c": "x", "d": [1, 2]}
+    with pytest.raises(ConfigError):
+        parse_overrides(["novalue"])

@@ -1,0 +1,202 @@
+"""`vslam` command line: a thin shell over the Python API.
+
+Every user mistake surfaces as a VslamError and is printed as one line
+(``vslam: error: <file>:<line>: <problem>``) with exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+from vslam import __version__
+from vslam.errors import VslamError
+
+
+def _progress_bar(desc: str) -> tuple[Callable[[int, int], None], Callable[[], None]]:
+    from tqdm import tqdm
+
+    bar: dict[str, Any] = {}
+
+    def update(done: int, total: int) -> None:
+        if "b" not in bar:
+            bar["b"] = tqdm(total=total, desc=desc, unit="frame", leave=False, disable=None)
+        bar["b"].n = done
+        bar["b"].refresh()
+
+    def close() -> None:
+        if "b" in bar:
+            bar["b"].close()
+
+    return update, close
+
+
+def _summary(result: Any, out: Path) -> None:
+    print(f"frames: {len(result.trajectory)} ({int(result.tracked.sum())} tracked), {result.fps:.1f} frames/s")
+    print(f"trajectory: {result.paths.get('trajectory_tum', out)}")
+    if result.eval is not None:
+        a = result.eval.ate
+        print(f"ATE RMSE: {a['rmse']:.4f} m ({result.eval.alignment['mode']} aligned, {a['n']} poses)")
+        if "report_html" in result.paths:
+            print(f"report: {result.paths['report_html']}")
+    else:
+        print("no ground truth: trajectory not evaluated")
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from vslam.config import deep_merge, parse_overrides
+    from vslam.pipeline import Pipeline, PipelineConfig
+
+    over: dict[str, Any] = {}
+    ds: dict[str, Any] = {}
+    if args.data:
+        ds["path"] = args.data
+        ds["kind"] = args.kind or "auto"
+    elif args.kind:
+        ds["kind"] = args.kind
+    if args.sensor:
+        ds["sensor"] = args.sensor
+    if args.max_frames is not None:
+        ds["max_frames"] = args.max_frames
+    if ds:
+        over["dataset"] = ds
+    if args.out:
+        over["output"] = {"dir": args.out}
+    over = deep_merge(over, parse_overrides(args.set or []))
+    cfg = PipelineConfig.load(args.config, over)
+    update, close = _progress_bar("tracking")
+    try:
+        result = Pipeline(cfg).run(progress=update)
+    finally:
+        close()
+    _summary(result, Path(cfg.output.dir))
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from vslam.pipeline import Pipeline, PipelineConfig
+
+    cfg = PipelineConfig.load(None, {"dataset": {"kind": "synthetic", "sensor": "rgbd", "max_frames": args.frames}, "output": {"dir": args.out}})
+    print(f"vslam {__version__} demo: built-in synthetic room (RGB-D, moving boxes), baseline frame-to-frame odometry")
+    update, close = _progress_bar("demo")
+    try:
+        result = Pipeline(cfg).run(progress=update)
+    finally:
+        close()
+    _summary(result, Path(args.out))
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from vslam.eval import EvalConfig, evaluate_files, write_report
+
+    cfg = EvalConfig(align=args.align, max_diff=args.max_diff)
+    res = evaluate_files(args.est, args.gt, cfg, est_format=args.est_format, gt_format=args.gt_format, monocular=args.mono)
+    a = res.ate
+    print(f"ATE ({res.alignment['mode']}): rmse {a['rmse']:.6f} m, mean {a['mean']:.6f}, median {a['median']:.6f}, max {a['max']:.6f}, n {a['n']}")
+    for r in res.rpe:
+        print(f"RPE {r['delta']} {r['unit']}: trans rmse {r['trans']['rmse']:.6f} m, rot rmse {r['rot']['rmse']:.4f} deg")
+    if res.kitti is not None:
+        print(f"KITTI: t_rel {res.kitti['t_rel']:.4f} %, r_rel {res.kitti['r_rel']:.4f} deg/100m")
+    if args.out:
+        paths = write_report(res, Path(args.out), title=f"vslam eval: {Path(args.est).name}")
+        print(f"report: {paths.get('html')}")
+    return 0
+
+
+def cmd_synth(args: argparse.Namespace) -> int:
+    from vslam.config import deep_merge, load_yaml, parse_overrides
+    from vslam.config import from_dict
+    from vslam.data.synthetic import SyntheticConfig, SyntheticSequence, write_sequence
+
+    data: dict[str, Any] = load_yaml(args.config) if args.config else {}
+    if "dataset" in data:  # accept a pipeline config and use its dataset.synthetic block
+        data = (data.get("dataset") or {}).get("synthetic") or {}
+    quick = {k: v for k, v in (("n_frames", args.frames), ("seed", args.seed), ("scene", args.scene)) if v is not None}
+    data = deep_merge(deep_merge(data, quick), parse_overrides(args.set or []))
+    scfg = from_dict(SyntheticConfig, data, args.config or "<synth>")
+    paths = write_sequence(SyntheticSequence(scfg), Path(args.out))
+    for k, p in paths.items():
+        print(f"{k}: {p}")
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from vslam.bench import run_bench
+
+    out = run_bench(args.suite, Path(args.output), repeat=args.repeat, only=args.only, jobs_dir=Path(args.runs))
+    print(f"wrote {out}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="vslam", description="Visual(-inertial) SLAM with honest evaluation.")
+    p.add_argument("--version", action="version", version=f"vslam {__version__}")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="-v info, -vv debug logging")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    r = sub.add_parser("run", help="run on a dataset sequence (or the synthetic default)")
+    r.add_argument("--config", "-c", help="YAML config (configs/*.yaml)")
+    r.add_argument("--data", "-d", help="sequence folder (TUM, KITTI or EuRoC layout); relative paths also tried under $VSLAM_DATA")
+    r.add_argument("--kind", choices=["auto", "tum", "kitti", "euroc", "synthetic"])
+    r.add_argument("--sensor", choices=["rgbd", "stereo", "mono"])
+    r.add_argument("--max-frames", type=int)
+    r.add_argument("--out", "-o", help="output folder (default from config: runs/latest)")
+    r.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field, e.g. odometry.n_features=2000")
+    r.set_defaults(fn=cmd_run)
+
+    d = sub.add_parser("demo", help="run the built-in synthetic sequence end to end")
+    d.add_argument("--out", "-o", default="runs/demo")
+    d.add_argument("--frames", type=int, default=300)
+    d.set_defaults(fn=cmd_demo)
+
+    e = sub.add_parser("eval", help="ATE/RPE/KITTI metrics of an estimate against ground truth")
+    e.add_argument("est")
+    e.add_argument("gt")
+    e.add_argument("--est-format", default="auto", choices=["auto", "tum", "kitti", "euroc"])
+    e.add_argument("--gt-format", default="auto", choices=["auto", "tum", "kitti", "euroc"])
+    e.add_argument("--align", default="auto", choices=["auto", "se3", "sim3", "none"])
+    e.add_argument("--mono", action="store_true", help="monocular estimate: auto alignment becomes Sim3")
+    e.add_argument("--max-diff", type=float, default=0.02, help="timestamp association tolerance, seconds")
+    e.add_argument("--out", "-o", help="write report.md/report.html/metrics.json/plots here")
+    e.set_defaults(fn=cmd_eval)
+
+    s = sub.add_parser("synth", help="write a synthetic sequence in TUM and EuRoC layouts")
+    s.add_argument("out")
+    s.add_argument("--config", "-c", help="YAML with SyntheticConfig fields (or a pipeline config)")
+    s.add_argument("--frames", type=int)
+    s.add_argument("--seed", type=int)
+    s.add_argument("--scene", choices=["room", "street"])
+    s.add_argument("--set", action="append", metavar="KEY=VALUE")
+    s.set_defaults(fn=cmd_synth)
+
+    b = sub.add_parser("bench", help="run the benchmark suite and rewrite BENCHMARKS.md")
+    b.add_argument("--suite", default="configs/bench.yaml")
+    b.add_argument("--output", default="BENCHMARKS.md")
+    b.add_argument("--runs", default="runs/bench", help="where each job's outputs go")
+    b.add_argument("--repeat", type=int, default=1, help="runs per row (median and spread reported)")
+    b.add_argument("--only", action="append", help="run only rows with this name (repeatable)")
+    b.set_defaults(fn=cmd_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    logging.captureWarnings(True)
+    try:
+        return args.fn(args)
+    except VslamError as e:
+        print(f"vslam: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("vslam: interrupted (outputs written so far are kept)", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,168 @@
+"""Wires the stages from one config: open a sequence, track every frame,
+write the trajectory as it is produced, then evaluate against ground truth.
+
+The front end today is the frame-to-frame baseline odometry
+(`vslam.tracking.baseline`); the SLAM core replaces it behind the same
+``track(frame) -> FrameEstimate`` call.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Literal
+
+import numpy as np
+import yaml
+
+from vslam.config import from_dict, load_config, to_dict
+from vslam.data.trajectory import Trajectory, TrajectoryWriter, write_trajectory
+from vslam.data.types import Sequence
+from vslam.errors import ConfigError
+from vslam.eval import EvalConfig, EvalResult, evaluate, write_report
+from vslam.paths import data_root
+from vslam.tracking.baseline import FrameEstimate, FrameToFrameOdometry, OdometryConfig
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """Which sequence to run. ``path`` relative to the data root ($VSLAM_DATA or ../shared/data) unless absolute."""
+
+    kind: Literal["auto", "tum", "kitti", "euroc", "synthetic"] = "synthetic"
+    path: str = ""
+    sensor: Literal["rgbd", "stereo", "mono"] = "rgbd"
+    max_diff: float = 0.02  # seconds, image/depth/ground-truth association
+    max_frames: int = 0  # 0 = all frames
+    synthetic: dict[str, Any] = field(default_factory=dict)  # SyntheticConfig fields when kind == synthetic
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    dir: str = "runs/latest"
+    formats: tuple[str, ...] = ("tum", "kitti")
+    report: bool = True
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    dataset: DatasetConfig = DatasetConfig()
+    odometry: OdometryConfig = OdometryConfig()
+    eval: EvalConfig = EvalConfig()
+    output: OutputConfig = OutputConfig()
+
+    @staticmethod
+    def load(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> PipelineConfig:
+        return load_config(PipelineConfig, path, overrides)
+
+
+@dataclass
+class RunResult:
+    trajectory: Trajectory
+    tracked: np.ndarray  # (N,) bool: measured (True) or predicted through a failure (False)
+    stats: list[dict[str, float]]
+    eval: EvalResult | None
+    paths: dict[str, Path]
+    seconds: float
+
+    @property
+    def fps(self) -> float:
+        return len(self.trajectory) / self.seconds if self.seconds > 0 else float("nan")
+
+
+def open_dataset(cfg: DatasetConfig) -> Sequence:
+    """The Sequence a DatasetConfig names (synthetic ones are generated lazily in memory)."""
+    if cfg.kind == "synthetic":
+        from vslam.data.synthetic import SyntheticConfig, SyntheticSequence
+
+        scfg = from_dict(SyntheticConfig, dict(cfg.synthetic), "dataset.synthetic", prefix="dataset.synthetic.")
+        return SyntheticSequence(scfg, sensor=cfg.sensor)
+    from vslam.data.registry import open_sequence
+
+    if not cfg.path:
+        raise ConfigError("dataset.path is empty; give the sequence folder (or use kind: synthetic)")
+    path = Path(cfg.path).expanduser()
+    if not path.is_absolute() and not path.exists():
+        path = data_root() / path
+    return open_sequence(path, kind=cfg.kind, sensor=cfg.sensor, max_diff=cfg.max_diff)
+
+
+STAT_COLUMNS = ("index", "timestamp", "tracked", "n_features", "n_matches", "n_inliers", "ms_features", "ms_depth", "ms_pose", "ms_total")
+
+
+def _fmt_stat(col: str, v: object) -> str:
+    if isinstance(v, float):
+        return f"{v:.6f}" if col == "timestamp" else f"{v:.3f}"
+    return str(v)
+
+
+class Pipeline:
+    """``Pipeline(config).run(sequence)``: the Python API behind ``vslam run``."""
+
+    def __init__(self, config: PipelineConfig = PipelineConfig()):
+        self.config = config
+
+    def run(
+        self,
+        sequence: Sequence | None = None,
+        out_dir: str | Path | None = None,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> RunResult:
+        cfg = self.config
+        seq = sequence if sequence is not None else open_dataset(cfg.dataset)
+        out = Path(out_dir or cfg.output.dir)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "config.yaml").write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+        paths: dict[str, Path] = {"config": out / "config.yaml"}
+        writers = {f: TrajectoryWriter(out / f"trajectory.{f}.txt", f) for f in cfg.output.formats}
+        paths.update({f"trajectory_{f}": w.path for f, w in writers.items()})
+        odo = FrameToFrameOdometry(seq.calibration, cfg.dataset.sensor, cfg.odometry)
+        n_total = len(seq) if cfg.dataset.max_frames <= 0 else min(len(seq), cfg.dataset.max_frames)
+        stamps: list[float] = []
+        poses: list[np.ndarray] = []
+        tracked: list[bool] = []
+        stats: list[dict[str, float]] = []
+        stats_path = out / "stats.csv"
+        paths["stats"] = stats_path
+        t_start = time.perf_counter()
+        try:
+            with open(stats_path, "w", newline="") as fstats:
+                sw = csv.writer(fstats)
+                sw.writerow(STAT_COLUMNS)
+                for k, frame in enumerate(seq):
+                    if k >= n_total:
+                        break
+                    t0 = time.perf_counter()
+                    est: FrameEstimate = odo.track(frame)
+                    ms = (time.perf_counter() - t0) * 1e3
+                    for w in writers.values():
+                        w.write(frame.timestamp, est.T_world_cam)
+                    row = {"index": frame.index, "timestamp": frame.timestamp, "tracked": int(est.tracked),
+                           "n_features": est.n_features, "n_matches": est.n_matches, "n_inliers": est.n_inliers,
+                           **{f"ms_{k2}": v for k2, v in est.times_ms.items()}, "ms_total": ms}
+                    sw.writerow([_fmt_stat(c, row.get(c, "")) for c in STAT_COLUMNS])
+                    fstats.flush()
+                    stats.append(row)
+                    stamps.append(frame.timestamp)
+                    poses.append(est.T_world_cam)
+                    tracked.append(est.tracked)
+                    if progress:
+                        progress(k + 1, n_total)
+        finally:
+            for w in writers.values():
+                w.close()
+        seconds = time.perf_counter() - t_start
+        traj = Trajectory(np.array(stamps), np.array(poses).reshape(-1, 4, 4))
+        result = RunResult(traj, np.array(tracked, bool), stats, None, paths, seconds)
+        gt = seq.groundtruth()
+        if gt is not None and len(traj) >= 3:
+            paths["groundtruth"] = write_trajectory(out / "groundtruth.tum.txt", gt, "tum")
+            result.eval = evaluate(traj, gt, cfg.eval, monocular=cfg.dataset.sensor == "mono")
+            if cfg.output.report:
+                paths.update({f"report_{k}": v for k, v in write_report(result.eval, out / "report", title=f"vslam run: {seq.name}").items()})
+        log.info("%d frames in %.1f s (%.1f frames/s), %d tracked", len(traj), seconds, result.fps, int(np.sum(tracked)))
+        return result

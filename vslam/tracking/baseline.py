@@ -1,0 +1,211 @@
+"""Ground-truth-free frame-to-frame odometry: the clearly-labelled placeholder
+front end until the SLAM core (tracking + local mapping + GTSAM back end) lands.
+
+Each frame is matched (ORB, Hamming, mutual + ratio test) against the last
+frame that tracked well; 3-D points of that reference frame come from its
+depth map (RGB-D) or from left-right triangulation (stereo), and the new pose
+is a RANSAC PnP. Monocular falls back to the essential matrix with a unit
+translation per step, so its scale is arbitrary (evaluate with Sim3). No map,
+no bundle adjustment, no loop closing: drift accumulates.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from vslam.data.types import Calibration, Frame, PinholeCamera, SensorKind
+from vslam.geometry.se3 import inv_T, make_T
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class OdometryConfig:
+    n_features: int = 1500
+    ratio: float = 0.8  # Lowe ratio for descriptor matching
+    ransac_px: float = 2.0  # PnP / essential inlier threshold, pixels
+    min_inliers: int = 20  # fewer -> the frame is "lost" and the pose is predicted
+    min_depth: float = 0.1  # metres; depth outside [min, max] is ignored
+    max_depth: float = 10.0
+    stereo_max_epipolar_px: float = 1.5  # left-right match must lie this close to the epipolar line
+    seed: int = 0  # OpenCV RANSAC seed (cv2.setRNGSeed) so runs are repeatable
+
+
+@dataclass
+class FrameEstimate:
+    """Result for one frame: pose (4,4) T_world_cam, whether it was measured or predicted, and stats."""
+
+    T_world_cam: np.ndarray
+    tracked: bool
+    n_features: int = 0
+    n_matches: int = 0
+    n_inliers: int = 0
+    times_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class _Ref:
+    """The reference frame: its pose, keypoints (ideal pixels), descriptors and 3-D points (camera frame, NaN unknown)."""
+
+    T_world_cam: np.ndarray
+    uv: np.ndarray
+    desc: np.ndarray
+    pts_cam: np.ndarray
+
+
+def _gray(img: np.ndarray) -> np.ndarray:
+    return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+
+
+class FrameToFrameOdometry:
+    """Stateful odometry: feed frames in order with ``track(frame)``."""
+
+    def __init__(self, calib: Calibration, sensor: SensorKind, cfg: OdometryConfig = OdometryConfig()):
+        self.calib = calib
+        self.sensor = sensor
+        self.cfg = cfg
+        self.cam: PinholeCamera = calib.cam0
+        self.orb = cv2.ORB_create(cfg.n_features)
+        self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        self.ref: _Ref | None = None
+        self.T_world_cam = np.eye(4)
+        self.velocity = np.eye(4)  # T_prev_cur of the last tracked step, for constant-velocity prediction
+        self._since_ref = 0  # frames since the reference frame (>1 after lost frames)
+        if sensor == "stereo" and (calib.cam1 is None or calib.T_cam0_cam1 is None):
+            raise ValueError("stereo odometry needs cam1 and its extrinsics in the calibration")
+
+    # -- features -------------------------------------------------------
+    def _features(self, img: np.ndarray, cam: PinholeCamera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """-> raw pixels (N,2), ideal pixels (N,2), descriptors (N,32) uint8."""
+        kps, desc = self.orb.detectAndCompute(_gray(img), None)
+        if desc is None or len(kps) == 0:
+            return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
+        raw = np.array([k.pt for k in kps], dtype=np.float64)
+        return raw, cam.undistort_points(raw), desc
+
+    def _match(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
+        """(M,2) index pairs: mutual nearest neighbours passing the ratio test."""
+        if len(d1) < 2 or len(d2) < 2:
+            return np.zeros((0, 2), np.int64)
+        fwd = self.matcher.knnMatch(d1, d2, k=2)
+        bwd = {m[0].queryIdx: m[0].trainIdx for m in self.matcher.knnMatch(d2, d1, k=1) if m}
+        pairs = [
+            (m[0].queryIdx, m[0].trainIdx)
+            for m in fwd
+            if len(m) == 2 and m[0].distance < self.cfg.ratio * m[1].distance and bwd.get(m[0].trainIdx) == m[0].queryIdx
+        ]
+        return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+
+    # -- 3-D points of a frame -------------------------------------------
+    def _points_rgbd(self, frame: Frame, raw: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        pts = np.full((len(raw), 3), np.nan)
+        if frame.depth is None or len(raw) == 0:
+            return pts
+        h, w = frame.depth.shape
+        ix = np.clip(np.round(raw).astype(int), 0, [w - 1, h - 1])
+        d = frame.depth[ix[:, 1], ix[:, 0]].astype(np.float64)
+        ok = (d > self.cfg.min_depth) & (d < self.cfg.max_depth)
+        pts[ok] = self.cam.backproject(uv[ok], d[ok])
+        return pts
+
+    def _points_stereo(self, frame: Frame, uv: np.ndarray, desc: np.ndarray) -> np.ndarray:
+        pts = np.full((len(uv), 3), np.nan)
+        if frame.right is None or len(uv) == 0:
+            return pts
+        cam1 = self.calib.cam1
+        assert cam1 is not None
+        _, uv_r, desc_r = self._features(frame.right, cam1)
+        m = self._match(desc, desc_r)
+        if len(m) == 0:
+            return pts
+        T_1_0 = inv_T(self.calib.T_cam0_cam1)  # cam0 -> cam1
+        P0 = self.cam.K @ np.eye(4)[:3]
+        P1 = cam1.K @ T_1_0[:3]
+        a, b = uv[m[:, 0]], uv_r[m[:, 1]]
+        X = cv2.triangulatePoints(P0, P1, a.T, b.T)
+        X = (X[:3] / X[3]).T
+        # keep points in front of both cameras, within range, and consistent with both views
+        X1 = X @ T_1_0[:3, :3].T + T_1_0[:3, 3]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            err0 = np.linalg.norm(self.cam.project(X) - a, axis=1)
+            err1 = np.linalg.norm(cam1.project(X1) - b, axis=1)
+        ok = (X[:, 2] > self.cfg.min_depth) & (X[:, 2] < self.cfg.max_depth) & (X1[:, 2] > self.cfg.min_depth)
+        ok &= (err0 < self.cfg.stereo_max_epipolar_px) & (err1 < self.cfg.stereo_max_epipolar_px)
+        pts[m[ok, 0]] = X[ok]
+        return pts
+
+    # -- pose -------------------------------------------------------------
+    def _pnp(self, pts_ref: np.ndarray, uv_cur: np.ndarray) -> tuple[np.ndarray | None, int]:
+        """T_ref_cur from 3-D points in the reference camera and their pixels in the current one."""
+        if len(pts_ref) < max(6, self.cfg.min_inliers):
+            return None, 0
+        cv2.setRNGSeed(self.cfg.seed)
+        guess = inv_T(self.velocity)  # T_cur_ref predicted
+        rvec0, _ = cv2.Rodrigues(guess[:3, :3])
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            pts_ref, uv_cur, self.cam.K, None, rvec=rvec0.copy(), tvec=guess[:3, 3].copy().reshape(3, 1),
+            useExtrinsicGuess=False, iterationsCount=200, reprojectionError=self.cfg.ransac_px,
+            confidence=0.999, flags=cv2.SOLVEPNP_SQPNP,
+        )
+        if not ok or inl is None or len(inl) < self.cfg.min_inliers:
+            return None, 0 if inl is None else len(inl)
+        inl = inl.reshape(-1)
+        rvec, tvec = cv2.solvePnPRefineLM(pts_ref[inl], uv_cur[inl], self.cam.K, None, rvec, tvec)
+        T_cur_ref = make_T(cv2.Rodrigues(rvec)[0], tvec.reshape(3))
+        return inv_T(T_cur_ref), len(inl)
+
+    def _essential(self, uv_ref: np.ndarray, uv_cur: np.ndarray) -> tuple[np.ndarray | None, int]:
+        if len(uv_ref) < max(8, self.cfg.min_inliers):
+            return None, 0
+        cv2.setRNGSeed(self.cfg.seed)
+        E, mask = cv2.findEssentialMat(uv_ref, uv_cur, self.cam.K, cv2.RANSAC, 0.999, self.cfg.ransac_px)
+        if E is None or E.shape != (3, 3):
+            return None, 0
+        n, R, t, mask = cv2.recoverPose(E, uv_ref, uv_cur, self.cam.K, mask=mask)
+        if n < self.cfg.min_inliers:
+            return None, int(n)
+        return inv_T(make_T(R, t.reshape(3))), int(n)  # T_ref_cur with |t| = 1
+
+    def track(self, frame: Frame) -> FrameEstimate:
+        t0 = time.perf_counter()
+        raw, uv, desc = self._features(frame.image, self.cam)
+        t1 = time.perf_counter()
+        if self.sensor == "rgbd":
+            pts = self._points_rgbd(frame, raw, uv)
+        elif self.sensor == "stereo":
+            pts = self._points_stereo(frame, uv, desc)
+        else:
+            pts = np.full((len(uv), 3), np.nan)
+        t2 = time.perf_counter()
+        est = FrameEstimate(self.T_world_cam, tracked=False, n_features=len(uv))
+        if self.ref is None:
+            est.tracked = len(uv) >= self.cfg.min_inliers
+        else:
+            m = self._match(self.ref.desc, desc)
+            est.n_matches = len(m)
+            if self.sensor == "mono":
+                T_ref_cur, est.n_inliers = self._essential(self.ref.uv[m[:, 0]], uv[m[:, 1]])
+            else:
+                has3d = ~np.isnan(self.ref.pts_cam[m[:, 0], 0]) if len(m) else np.zeros(0, bool)
+                mm = m[has3d]
+                T_ref_cur, est.n_inliers = self._pnp(self.ref.pts_cam[mm[:, 0]], uv[mm[:, 1]])
+            self._since_ref += 1
+            if T_ref_cur is not None:
+                if self._since_ref == 1:  # a gap says nothing reliable about the per-frame motion
+                    self.velocity = T_ref_cur
+                self.T_world_cam = self.ref.T_world_cam @ T_ref_cur
+                est.tracked = True
+            else:
+                self.T_world_cam = self.T_world_cam @ self.velocity  # constant-velocity guess
+        t3 = time.perf_counter()
+        est.T_world_cam = self.T_world_cam.copy()
+        if est.tracked:
+            self.ref = _Ref(self.T_world_cam.copy(), uv, desc, pts)
+            self._since_ref = 0
+        est.times_ms = {"features": (t1 - t0) * 1e3, "depth": (t2 - t1) * 1e3, "pose": (t3 - t2) * 1e3}
+        return est
