@@ -64,3 +64,12 @@ def test_parse_overrides():
     assert parse_overrides(["a.b=2", "c=x", "d=[1, 2]"]) == {"a": {"b": 2}, "c": "x", "d": [1, 2]}
     with pytest.raises(ConfigError):
         parse_overrides(["novalue"])
+
+
+def test_nested_fixed_tuples():
+    from vslam.eval import EvalConfig
+
+    c = from_dict(EvalConfig, {"rpe_deltas": [[1, "frames"], [0.5, "meters"]]})
+    assert [tuple(d) for d in c.rpe_deltas] == [(1.0, "frames"), (0.5, "meters")]
+    with pytest.raises(ConfigError, match="must have 2 items"):
+        from_dict(EvalConfig, {"rpe_deltas": [[1, "frames", 3]]})

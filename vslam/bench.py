@@ -50,14 +50,14 @@ def _job_run(config: str | None, overrides: dict[str, Any], out_dir: str) -> dic
     row: dict[str, Any] = {"frames": len(res.trajectory), "tracked": int(res.tracked.sum()), "fps": res.fps,
                            "ms_per_frame": 1e3 * res.seconds / max(1, len(res.trajectory))}
     if res.eval is not None:
-        row["ate_rmse"] = res.eval.ate["rmse"]
-        row["align"] = res.eval.alignment["mode"]
-        row["path_m"] = res.eval.gt_length
+        row["ate_rmse"] = res.eval.ate.translation.rmse
+        row["align"] = res.eval.alignment.method
+        row["path_m"] = res.eval.gt_length_m
         first = res.eval.rpe[0] if res.eval.rpe else None
         if first is not None:
-            row["rpe_t"] = first["trans"]["rmse"]
-            row["rpe_r"] = first["rot"]["rmse"]
-            row["rpe_delta"] = f"{first['delta']:g} {first['unit']}"
+            row["rpe_t"] = first.translation.rmse
+            row["rpe_r"] = first.rotation_deg.rmse
+            row["rpe_delta"] = first.label
     row["peak_rss_mb"] = _peak_rss_mb()
     return row
 

@@ -38,8 +38,7 @@ def _summary(result: Any, out: Path) -> None:
     print(f"frames: {len(result.trajectory)} ({int(result.tracked.sum())} tracked), {result.fps:.1f} frames/s")
     print(f"trajectory: {result.paths.get('trajectory_tum', out)}")
     if result.eval is not None:
-        a = result.eval.ate
-        print(f"ATE RMSE: {a['rmse']:.4f} m ({result.eval.alignment['mode']} aligned, {a['n']} poses)")
+        print(result.eval.summary())
         if "report_html" in result.paths:
             print(f"report: {result.paths['report_html']}")
     else:
@@ -95,15 +94,20 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     cfg = EvalConfig(align=args.align, max_diff=args.max_diff)
     res = evaluate_files(args.est, args.gt, cfg, est_format=args.est_format, gt_format=args.gt_format, monocular=args.mono)
-    a = res.ate
-    print(f"ATE ({res.alignment['mode']}): rmse {a['rmse']:.6f} m, mean {a['mean']:.6f}, median {a['median']:.6f}, max {a['max']:.6f}, n {a['n']}")
+    a = res.ate.translation
+    scale = f", scale {res.alignment.s:.6f}" if res.alignment.method == "sim3" else ""
+    print(f"ATE ({res.alignment.method}{scale}): rmse {a.rmse:.6f} m, mean {a.mean:.6f}, median {a.median:.6f}, max {a.max:.6f}, n {a.n}")
     for r in res.rpe:
-        print(f"RPE {r['delta']} {r['unit']}: trans rmse {r['trans']['rmse']:.6f} m, rot rmse {r['rot']['rmse']:.4f} deg")
+        print(f"RPE {r.label}: trans rmse {r.translation.rmse:.6f} m, rot rmse {r.rotation_deg.rmse:.4f} deg")
     if res.kitti is not None:
-        print(f"KITTI: t_rel {res.kitti['t_rel']:.4f} %, r_rel {res.kitti['r_rel']:.4f} deg/100m")
+        print(f"KITTI: t_rel {res.kitti.t_rel:.4f} %, r_rel {res.kitti.r_rel:.4f} deg/100m")
+    elif res.kitti_reason:
+        print(f"KITTI metric: n/a ({res.kitti_reason})")
+    for note in res.notes:
+        print(f"note: {note}")
     if args.out:
         paths = write_report(res, Path(args.out), title=f"vslam eval: {Path(args.est).name}")
-        print(f"report: {paths.get('html')}")
+        print(f"report: {paths['report_html']}")
     return 0
 
 

@@ -62,6 +62,10 @@ def _coerce(tp: Any, value: Any, source: str, name: str) -> Any:
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{source}: '{name}' must be a list, got {value!r}")
         args = typing.get_args(tp)
+        if origin is tuple and args and args[-1] is not Ellipsis:  # fixed-length tuple[A, B, ...]
+            if len(value) != len(args):
+                raise ConfigError(f"{source}: '{name}' must have {len(args)} items, got {value!r}")
+            return tuple(_coerce(a, v, source, f"{name}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
         item = args[0] if args else Any
         items = [_coerce(item, v, source, f"{name}[{i}]") if item is not Any else v for i, v in enumerate(value)]
         return tuple(items) if origin is tuple else items

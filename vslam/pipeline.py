@@ -163,6 +163,6 @@ class Pipeline:
             paths["groundtruth"] = write_trajectory(out / "groundtruth.tum.txt", gt, "tum")
             result.eval = evaluate(traj, gt, cfg.eval, monocular=cfg.dataset.sensor == "mono")
             if cfg.output.report:
-                paths.update({f"report_{k}": v for k, v in write_report(result.eval, out / "report", title=f"vslam run: {seq.name}").items()})
+                paths.update(write_report(result.eval, out / "report", title=f"vslam run: {seq.name}"))
         log.info("%d frames in %.1f s (%.1f frames/s), %d tracked", len(traj), seconds, result.fps, int(np.sum(tracked)))
         return result

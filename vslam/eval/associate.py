@@ -37,7 +37,8 @@ class Association:
 
 
 def to_evo(traj: Trajectory, name: str | None = None) -> PoseTrajectory3D:
-    return PoseTrajectory3D(poses_se3=list(traj.poses), timestamps=traj.timestamps.copy(), name=name)
+    # Copies: evo aligns trajectories in place, and the caller's poses must stay untouched.
+    return PoseTrajectory3D(poses_se3=list(traj.poses.copy()), timestamps=traj.timestamps.copy(), name=name)
 
 
 def from_evo(traj: PoseTrajectory3D) -> Trajectory:

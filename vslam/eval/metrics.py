@@ -2,7 +2,10 @@
 
 Everything here works on associated pairs (see ``associate``): alignment is
 evo's Umeyama (``PosePath3D.align``), ATE is ``metrics.APE`` and RPE is
-``metrics.RPE`` with consecutive (non-overlapping) pairs, evo's default.
+``metrics.RPE`` with consecutive (non-overlapping) pairs, evo's default; a
+metres delta picks its pairs along the aligned estimate's path, as evo_rpe does.
+Rotation angles are evo's definition (norm of scipy's rotation vector) computed
+on whole arrays, because evo's per-pose loop takes seconds on KITTI-length runs.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from evo import EvoException
 from evo.core import metrics
 from evo.core.metrics import PoseRelation, Unit
 from evo.core.trajectory import PoseTrajectory3D
+from scipy.spatial.transform import Rotation
 
 from vslam.errors import EvalError
 from vslam.eval.associate import Association, to_evo
@@ -102,8 +106,9 @@ class RpeStats:
 
     @property
     def label(self) -> str:
+        unit = self.unit[:-1] if self.delta == 1 else self.unit  # "1 frame", "2 frames"
         extra = f" (= {self.frames} frames)" if self.frames is not None else ""
-        return f"{self.delta:g} {self.unit}{extra}"
+        return f"{self.delta:g} {unit}{extra}"
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -154,10 +159,13 @@ def ate(gt: PoseTrajectory3D, est_aligned: PoseTrajectory3D) -> tuple[AteStats, 
     """(stats, per-pose translation error (m), per-pose rotation error (deg))."""
     trans = metrics.APE(PoseRelation.translation_part)
     trans.process_data((gt, est_aligned))
-    rot = metrics.APE(PoseRelation.rotation_angle_deg)
-    rot.process_data((gt, est_aligned))
-    stats = AteStats(_stats(trans), _stats(rot))
-    return stats, np.asarray(trans.error, dtype=np.float64), np.asarray(rot.error, dtype=np.float64)
+    # evo's rotation_angle_deg is angle(inv(R_est) @ R_gt) pose by pose through
+    # scipy; the same computation batched is ~100x faster on long sequences.
+    R_est = np.asarray(est_aligned.poses_se3)[:, :3, :3]
+    R_gt = np.asarray(gt.poses_se3)[:, :3, :3]
+    rot = rotation_angle_deg(np.swapaxes(R_est, 1, 2) @ R_gt)
+    stats = AteStats(_stats(trans), ErrorStats.from_errors(rot))
+    return stats, np.asarray(trans.error, dtype=np.float64), rot
 
 
 def rpe(
@@ -189,19 +197,23 @@ def rpe(
     else:
         raise EvalError(f"unknown RPE delta unit {unit!r}; expected frames, meters or seconds")
 
-    out = []
-    for relation in (PoseRelation.translation_part, PoseRelation.rotation_angle_deg):
-        m = metrics.RPE(relation, delta=evo_delta, delta_unit=evo_unit, all_pairs=False)
-        try:
-            m.process_data((gt, est_aligned))
-        except EvoException:
-            span = f"{gt.path_length:.2f} m" if unit == "meters" else f"{gt.num_poses} poses"
-            raise DeltaNotApplicable(f"RPE delta {delta:g} {unit} skipped: the trajectory is too short ({span})") from None
-        out.append(m)
-    t_m, r_m = out
-    stats = RpeStats(delta, unit, frames, _stats(t_m), _stats(r_m))
-    series = RpeSeries(np.asarray(t_m.delta_ids, dtype=np.int64), np.asarray(t_m.error), np.asarray(r_m.error))
+    m = metrics.RPE(PoseRelation.translation_part, delta=evo_delta, delta_unit=evo_unit, all_pairs=False)
+    try:
+        m.process_data((gt, est_aligned))
+    except EvoException:
+        span = f"{gt.path_length:.2f} m" if unit == "meters" else f"{gt.num_poses} poses"
+        raise DeltaNotApplicable(f"RPE delta {delta:g} {unit} skipped: the trajectory is too short ({span})") from None
+    # m.E holds the full relative error poses; their angles are evo's
+    # rotation_angle_deg RPE, computed batched instead of pose by pose.
+    rot = rotation_angle_deg(np.asarray(m.E)[:, :3, :3])
+    stats = RpeStats(delta, unit, frames, _stats(m), ErrorStats.from_errors(rot))
+    series = RpeSeries(np.asarray(m.delta_ids, dtype=np.int64), np.asarray(m.error, dtype=np.float64), rot)
     return stats, series
+
+
+def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
+    """(N,3,3) rotations -> (N,) angles in degrees, as evo's ``so3_log_angle`` (scipy rotvec norm)."""
+    return np.degrees(Rotation.from_matrix(R).magnitude())
 
 
 def _stats(m: metrics.PE) -> ErrorStats:

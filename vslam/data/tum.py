@@ -1,0 +1,302 @@
+"""TUM RGB-D benchmark reader (and our synthetic sequences, which share its layout).
+
+Layout of a sequence folder (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats)::
+
+    rgb.txt, depth.txt        "timestamp filename" per line, '#' comments
+    rgb/<t>.png               8-bit colour, 640x480
+    depth/<t>.png             16-bit, depth_scale (5000) units per metre, 0 = no reading
+    groundtruth.txt           "t tx ty tz qx qy qz qw", pose of the colour camera's optical centre
+    accelerometer.txt         "t ax ay az" (Kinect accelerometer, m/s^2), optional
+    calibration.yaml          optional override of the intrinsics (our synthetic generator writes it)
+    mask.txt + mask/<t>.png   optional, synthetic: uint8 0/255 dynamic-object masks
+    boxes.txt                 optional, synthetic: "t object_id x1 y1 x2 y2" pixels
+
+The camera and its distortion come from the folder name (freiburg1/2/3, the
+values TUM publishes), unless ``calibration.yaml`` says otherwise.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from vslam.data.euroc import parse_distortion_model, read_yaml_mapping
+from vslam.data.textio import check_increasing, read_numeric, read_rows, require_dir, require_file
+from vslam.data.trajectory import Trajectory, read_trajectory
+from vslam.data.types import Calibration, Frame, PinholeCamera, Sequence
+from vslam.errors import DatasetError
+
+logger = logging.getLogger(__name__)
+
+TUM_DEPTH_SCALE = 5000.0  # raw depth units per metre in every TUM RGB-D depth PNG
+
+# Published colour-camera calibrations; distortion is OpenCV (k1, k2, p1, p2, k3).
+TUM_CAMERAS: dict[str, PinholeCamera] = {
+    "freiburg1": PinholeCamera(640, 480, 517.3, 516.5, 318.6, 255.3, "radtan", (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
+    "freiburg2": PinholeCamera(640, 480, 520.9, 521.0, 325.1, 249.7, "radtan", (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)),
+    # fr3 images were undistorted by the Kinect driver before recording.
+    "freiburg3": PinholeCamera(640, 480, 535.4, 539.2, 320.1, 247.6),
+}
+# ROS openni default, what TUM recommends when the camera is unknown.
+ROS_DEFAULT_CAMERA = PinholeCamera(640, 480, 525.0, 525.0, 319.5, 239.5)
+
+CALIBRATION_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "distortion_model", "distortion", "depth_scale")
+
+
+def camera_for_folder(name: str) -> PinholeCamera | None:
+    """The TUM camera a folder name refers to (``freiburg3`` or ``fr3``), else None."""
+    m = re.search(r"(?:freiburg|fr)([123])(?![0-9])", name.lower())
+    return TUM_CAMERAS[f"freiburg{m.group(1)}"] if m else None
+
+
+def read_calibration_yaml(path: Path, camera: PinholeCamera, depth_scale: float) -> tuple[PinholeCamera, float]:
+    """Override ``camera`` / ``depth_scale`` with the keys of a calibration.yaml (an unknown key is an error)."""
+    data, lines = read_yaml_mapping(path)
+    for key in data:
+        if key not in CALIBRATION_KEYS:
+            raise DatasetError(path, f"unknown key {key!r}; allowed: {', '.join(CALIBRATION_KEYS)}", lines.get(str(key)))
+    values: dict[str, object] = {
+        "width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
+    }
+    for key in ("width", "height", "fx", "fy", "cx", "cy", "depth_scale"):
+        if key not in data:
+            continue
+        v = data[key]
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not np.isfinite(v) or v <= 0:
+            raise DatasetError(path, f"{key!r} must be a positive number, got {v!r}", lines.get(key))
+        if key in ("width", "height") and int(v) != v:
+            raise DatasetError(path, f"{key!r} must be an integer, got {v!r}", lines.get(key))
+        values[key] = int(v) if key in ("width", "height") else float(v)
+    scale = float(values.pop("depth_scale", depth_scale))  # type: ignore[arg-type]
+    model = camera.distortion_model
+    if "distortion_model" in data:
+        model = parse_distortion_model(path, data["distortion_model"], lines.get("distortion_model"))
+    dist: tuple[float, ...] = camera.distortion if model == camera.distortion_model else ()
+    if "distortion" in data:
+        d = data["distortion"]
+        if not isinstance(d, list) or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in d):
+            raise DatasetError(path, f"'distortion' must be a list of numbers, got {d!r}", lines.get("distortion"))
+        dist = tuple(float(x) for x in d)
+    counts = {"none": (0,), "radtan": (4, 5), "equidistant": (4,)}[model]
+    if len(dist) not in counts and not (model == "none" and not any(dist)):
+        raise DatasetError(path, f"distortion_model {model!r} takes {' or '.join(map(str, counts))} coefficients, found {len(dist)}", lines.get("distortion"))
+    cam = PinholeCamera(distortion_model=model, distortion=dist if model != "none" else (), **values)  # type: ignore[arg-type]
+    return cam, scale
+
+
+def read_file_list(list_path: Path, root: Path, what: str) -> tuple[np.ndarray, list[Path]]:
+    """A "timestamp filename" list -> (t (N,) s, files (N,)); errors name the list and line.
+
+    Timestamps must strictly increase and every listed file must exist.
+    """
+    require_file(list_path, what)
+    lines, rows = read_rows(list_path, 2, numeric_cols=1)
+    t = np.array([float(r[0]) for r in rows], dtype=np.float64)
+    check_increasing(list_path, t, np.asarray(lines))
+    files = [root / r[1] for r in rows]
+    for f, ln in zip(files, lines):
+        if not f.is_file():
+            raise DatasetError(list_path, f"listed file {f} does not exist", ln)
+    return t, files
+
+
+def associate(t_a: np.ndarray, t_b: np.ndarray, max_diff: float) -> tuple[np.ndarray, np.ndarray]:
+    """One-to-one matching of two timestamp lists, as TUM's associate.py does it.
+
+    Every pair closer than max_diff seconds is a candidate; candidates are
+    taken greedily by increasing difference, skipping those whose either side
+    is already used. Returns index arrays (ia, ib) sorted by ia.
+    Candidates are found by binary search, O((N + M) log M), not all N*M pairs.
+    """
+    t_a = np.asarray(t_a, dtype=np.float64)
+    t_b = np.asarray(t_b, dtype=np.float64)
+    lo = np.searchsorted(t_b, t_a - max_diff, side="left")
+    hi = np.searchsorted(t_b, t_a + max_diff, side="right")
+    ia = np.repeat(np.arange(len(t_a)), hi - lo)
+    ib = np.concatenate([np.arange(a, b) for a, b in zip(lo, hi)]) if len(t_a) else np.zeros(0, np.int64)
+    diff = np.abs(t_a[ia] - t_b[ib])
+    keep = diff < max_diff  # associate.py uses a strict bound
+    ia, ib, diff = ia[keep], ib[keep], diff[keep]
+    used_a = np.zeros(len(t_a), bool)
+    used_b = np.zeros(len(t_b), bool)
+    out_a: list[int] = []
+    out_b: list[int] = []
+    for k in np.lexsort((ib, ia, diff)):
+        a, b = int(ia[k]), int(ib[k])
+        if not used_a[a] and not used_b[b]:
+            used_a[a] = used_b[b] = True
+            out_a.append(a)
+            out_b.append(b)
+    order = np.argsort(out_a)
+    return np.asarray(out_a, np.int64)[order], np.asarray(out_b, np.int64)[order]
+
+
+class TumRgbdSequence(Sequence):
+    """TUM RGB-D sequence folder (``rgbd_dataset_freiburgN_*``) or a synthetic one in its layout.
+
+    path: the sequence folder.
+    max_diff: seconds; rgb<->depth pairs, ground-truth poses, masks and boxes
+        are matched to an rgb timestamp only within this.
+    sensor: "rgbd" (frames = associated rgb/depth pairs) or "mono" (every rgb
+        image, no depth; depth.txt not needed).
+
+    Frames: image (480,640,3) uint8 BGR, depth (480,640) float32 metres (0 =
+    invalid), T_world_cam from groundtruth.txt, dynamic_mask / boxes when the
+    synthetic extras exist. The Kinect accelerometer is not an IMU (no gyro,
+    its own clock and frame), so ``Frame.imu`` stays None and the readings
+    are offered by ``accelerometer()`` instead.
+    """
+
+    def __init__(self, path: str | Path, max_diff: float = 0.02, sensor: str = "rgbd"):
+        root = require_dir(Path(path), "TUM RGB-D sequence")
+        if sensor not in ("rgbd", "mono"):
+            raise DatasetError(root, f"sensor {sensor!r} not available for TUM RGB-D; use 'rgbd' or 'mono'")
+        self.path = root
+        self.name = root.name
+        self.sensor = sensor  # type: ignore[assignment]
+        self.max_diff = float(max_diff)
+
+        t_rgb, rgb_files = read_file_list(root / "rgb.txt", root, "rgb.txt")
+        if len(t_rgb) == 0:
+            raise DatasetError(root / "rgb.txt", "lists no images")
+        if sensor == "rgbd":
+            t_depth, depth_files = read_file_list(root / "depth.txt", root, "depth.txt")
+            ia, ib = associate(t_rgb, t_depth, self.max_diff)
+            if len(ia) < len(t_rgb):
+                logger.info("%s: %d of %d rgb images have a depth image within %.3f s", root, len(ia), len(t_rgb), max_diff)
+            self._depth: list[Path] | None = [depth_files[j] for j in ib]
+        else:
+            ia = np.arange(len(t_rgb))
+            self._depth = None
+        self._t = t_rgb[ia]
+        self._rgb = [rgb_files[i] for i in ia]
+        self.calibration = self._read_calibration(root)
+
+        gt_path = root / "groundtruth.txt"
+        self._gt = read_trajectory(gt_path, "tum") if gt_path.is_file() else None
+        self._gt_idx = self._gt.nearest(self._t, self.max_diff) if self._gt is not None else np.full(len(self._t), -1)
+        self._accel = self._read_accelerometer(root / "accelerometer.txt")
+        self._masks = self._read_masks(root)
+        self._boxes = self._read_boxes(root / "boxes.txt")
+
+    def _read_calibration(self, root: Path) -> Calibration:
+        camera = camera_for_folder(root.name)
+        yaml_path = root / "calibration.yaml"
+        if camera is None:
+            camera = ROS_DEFAULT_CAMERA
+            if not yaml_path.is_file():
+                logger.warning("%s: folder name names no freiburg1/2/3 camera; using the ROS default intrinsics 525 525 319.5 239.5", root)
+        scale = TUM_DEPTH_SCALE
+        if yaml_path.is_file():
+            camera, scale = read_calibration_yaml(yaml_path, camera, scale)
+        return Calibration(cam0=camera, depth_scale=scale if self.sensor == "rgbd" else None)
+
+    def _read_accelerometer(self, path: Path) -> tuple[np.ndarray, np.ndarray] | None:
+        if not path.is_file():
+            return None
+        lines, v = read_numeric(path, 4)
+        check_increasing(path, v[:, 0], lines)
+        return v[:, 0].copy(), v[:, 1:4].copy()
+
+    def _read_masks(self, root: Path) -> list[Path | None] | None:
+        list_path = root / "mask.txt"
+        if not list_path.is_file():
+            return None
+        t, files = read_file_list(list_path, root, "mask.txt")
+        idx = Trajectory(t, np.tile(np.eye(4), (len(t), 1, 1))).nearest(self._t, self.max_diff)
+        return [files[j] if j >= 0 else None for j in idx]
+
+    def _read_boxes(self, path: Path) -> list[np.ndarray] | None:
+        """boxes.txt -> per frame (K,4) float64 x1,y1,x2,y2; (0,4) for a frame no row matches."""
+        if not path.is_file():
+            return None
+        lines, v = read_numeric(path, 6)
+        check_increasing(path, v[:, 0], lines, strict=False)
+        bad = np.flatnonzero((v[:, 4] < v[:, 2]) | (v[:, 5] < v[:, 3]))
+        if len(bad):
+            raise DatasetError(path, "box has x2 < x1 or y2 < y1", int(lines[bad[0]]))
+        t_unique, start = np.unique(v[:, 0], return_index=True)
+        end = np.append(start[1:], len(v))
+        idx = Trajectory(t_unique, np.tile(np.eye(4), (len(t_unique), 1, 1))).nearest(self._t, self.max_diff)
+        return [v[start[j] : end[j], 2:6].copy() if j >= 0 else np.zeros((0, 4)) for j in idx]
+
+    # -- Sequence interface ------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def timestamps(self) -> np.ndarray:
+        return self._t.copy()
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(len(self)):
+            frame = self._load(i)
+            if frame is not None:
+                yield frame
+
+    def groundtruth(self) -> Trajectory | None:
+        """groundtruth.txt at its native rate (100 Hz mocap), T_world_cam of the colour camera."""
+        return self._gt
+
+    # -- extras ------------------------------------------------------------------------
+
+    def accelerometer(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(t (N,) s, accel (N,3) m/s^2) of accelerometer.txt, or None when absent."""
+        return self._accel
+
+    def frame_pose(self, i: int) -> np.ndarray | None:
+        """Ground-truth T_world_cam (4,4) of frame i without decoding its images, or None."""
+        j = int(self._gt_idx[i])
+        return None if j < 0 or self._gt is None else self._gt.poses[j].copy()
+
+    def frame(self, i: int) -> Frame:
+        """Frame i with its images decoded; DatasetError if one does not decode."""
+        frame = self._load(i)
+        if frame is None:
+            raise DatasetError(self._rgb[i], "frame does not decode (see the logged warning)")
+        return frame
+
+    def _load(self, i: int) -> Frame | None:
+        image = cv2.imread(str(self._rgb[i]), cv2.IMREAD_COLOR)
+        if image is None:
+            _warn_skip(self._rgb[i], "image does not decode")
+            return None
+        depth = None
+        if self._depth is not None:
+            raw = cv2.imread(str(self._depth[i]), cv2.IMREAD_UNCHANGED)
+            if raw is None or raw.dtype != np.uint16 or raw.shape != image.shape[:2]:
+                why = "does not decode" if raw is None else f"is {raw.dtype} {raw.shape}, expected uint16 {image.shape[:2]}"
+                _warn_skip(self._depth[i], f"depth image {why}")
+                return None
+            assert self.calibration.depth_scale is not None
+            depth = raw.astype(np.float32) / np.float32(self.calibration.depth_scale)
+        mask = None
+        mask_path = self._masks[i] if self._masks is not None else None
+        if mask_path is not None:
+            m = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+            if m is None or m.shape != image.shape[:2]:
+                _warn_skip(mask_path, "mask does not decode" if m is None else f"mask is {m.shape}, expected {image.shape[:2]}")
+                return None
+            mask = m > 0
+        return Frame(
+            index=i,
+            timestamp=float(self._t[i]),
+            image=image,
+            depth=depth,
+            T_world_cam=self.frame_pose(i),
+            dynamic_mask=mask,
+            boxes=self._boxes[i].copy() if self._boxes is not None else None,
+        )
+
+
+def _warn_skip(path: Path, why: str) -> None:
+    logger.warning("%s: %s; frame skipped", path, why)
+
+
+def is_tum_layout(path: Path) -> bool:
+    return (path / "rgb.txt").is_file()
