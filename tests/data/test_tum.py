@@ -66,9 +66,10 @@ def test_real_teddy(tum_teddy: Path) -> None:
     cam = seq.calibration.cam0
     assert (cam.fx, cam.fy, cam.cx, cam.cy) == (535.4, 539.2, 320.1, 247.6)
     assert cam.distortion_model == "none" and seq.calibration.depth_scale == 5000.0
-    # The depth stream drops frames: 7 rgb images have no depth within 20 ms (nearest 29-32 ms).
-    assert len(seq) == 193
-    assert sum(seq.frame_pose(i) is not None for i in range(len(seq))) == 189
+    # Every rgb image is a frame; the depth stream drops 7 (nearest depth 29-32 ms away): those get depth=None.
+    assert len(seq) == 200
+    assert sum(seq.frame_pose(i) is not None for i in range(len(seq))) == 196
+    assert sum(d is None for d in seq._depth) == 7
     assert len(seq.groundtruth()) > 600 and seq.accelerometer() is None
     f = seq.frame(20)
     assert f.image.shape == (480, 640, 3) and f.image.dtype == np.uint8
@@ -107,8 +108,9 @@ def test_associate_matches_reference_on_random_streams() -> None:
 
 def test_max_diff_is_configurable(tmp_path: Path) -> None:
     root = make_tum(tmp_path / "rgbd_dataset_freiburg3_x", depth_offset=0.015)
-    assert len(TumRgbdSequence(root)) == 5
-    assert len(TumRgbdSequence(root, max_diff=0.01)) == 0
+    assert all(f.depth is not None for f in TumRgbdSequence(root))
+    tight = TumRgbdSequence(root, max_diff=0.01)
+    assert len(tight) == 5 and all(f.depth is None for f in tight)
 
 
 # ------------------------------------------------------------------------------ content

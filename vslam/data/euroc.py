@@ -24,7 +24,7 @@ import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -32,7 +32,7 @@ import yaml
 
 from vslam.data.textio import check_increasing, read_rows, require_dir, require_file
 from vslam.data.trajectory import Trajectory
-from vslam.data.types import Calibration, DistortionModel, Frame, ImuNoise, ImuSamples, PinholeCamera, Sequence
+from vslam.data.types import Calibration, DistortionModel, Frame, ImuNoise, ImuSamples, PinholeCamera, SensorKind, Sequence
 from vslam.errors import DatasetError
 from vslam.geometry.se3 import quat_wxyz_to_R
 
@@ -277,7 +277,7 @@ class EurocSequence(Sequence):
             raise DatasetError(root, f"sensor {sensor!r} not available for EuRoC/TUM-VI; use 'stereo' or 'mono'")
         self.path = root
         self.name = (root.parent if root.name == "mav0" else root).name
-        self.sensor = sensor  # type: ignore[assignment]
+        self.sensor = cast(SensorKind, sensor)
         self.max_diff = float(max_diff)
         self._right: list[Path] | None = None  # cam1 images, stereo only
 

@@ -23,13 +23,14 @@ import logging
 import re
 from collections.abc import Iterator
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
 
 from vslam.data.textio import check_increasing, read_numeric, read_rows, require_dir, require_file
 from vslam.data.trajectory import Trajectory
-from vslam.data.types import Calibration, Frame, PinholeCamera, Sequence
+from vslam.data.types import Calibration, Frame, PinholeCamera, SensorKind, Sequence
 from vslam.errors import DatasetError
 
 logger = logging.getLogger(__name__)
@@ -139,7 +140,7 @@ class KittiSequence(Sequence):
         seq_dir, poses_path = resolve_sequence_dir(root, sequence)
         self.path = seq_dir
         self.name = f"kitti_{seq_dir.name}"
-        self.sensor = sensor  # type: ignore[assignment]
+        self.sensor = cast(SensorKind, sensor)
         self.camera = camera
         self._flags = cv2.IMREAD_GRAYSCALE if camera == 0 else cv2.IMREAD_COLOR
         left_id, right_id = _CAMERA_PAIRS[camera]

@@ -92,4 +92,4 @@ def check_increasing(path: Path, t: np.ndarray, lines: np.ndarray, *, strict: bo
     if len(bad):
         k = int(bad[0]) + 1
         kind = "repeats" if d[bad[0]] == 0 else "goes back in time"
-        raise DatasetError(path, f"timestamp {t[k]!r} {kind} (previous {t[k - 1]!r}); timestamps must increase", int(lines[k]))
+        raise DatasetError(path, f"timestamp {float(t[k])!r} {kind} (previous {float(t[k - 1])!r}); timestamps must increase", int(lines[k]))

@@ -21,6 +21,7 @@ import logging
 import re
 from collections.abc import Iterator
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
@@ -28,7 +29,7 @@ import numpy as np
 from vslam.data.euroc import parse_distortion_model, read_yaml_mapping
 from vslam.data.textio import check_increasing, read_numeric, read_rows, require_dir, require_file
 from vslam.data.trajectory import Trajectory, read_trajectory
-from vslam.data.types import Calibration, Frame, PinholeCamera, Sequence
+from vslam.data.types import Calibration, Frame, PinholeCamera, SensorKind, Sequence
 from vslam.errors import DatasetError
 
 logger = logging.getLogger(__name__)
@@ -142,8 +143,9 @@ class TumRgbdSequence(Sequence):
     path: the sequence folder.
     max_diff: seconds; rgb<->depth pairs, ground-truth poses, masks and boxes
         are matched to an rgb timestamp only within this.
-    sensor: "rgbd" (frames = associated rgb/depth pairs) or "mono" (every rgb
-        image, no depth; depth.txt not needed).
+    sensor: "rgbd" (every rgb image; depth from the nearest depth image within
+        max_diff, else None) or "mono" (every rgb image, no depth; depth.txt not
+        needed).
 
     Frames: image (480,640,3) uint8 BGR, depth (480,640) float32 metres (0 =
     invalid), T_world_cam from groundtruth.txt, dynamic_mask / boxes when the
@@ -158,7 +160,7 @@ class TumRgbdSequence(Sequence):
             raise DatasetError(root, f"sensor {sensor!r} not available for TUM RGB-D; use 'rgbd' or 'mono'")
         self.path = root
         self.name = root.name
-        self.sensor = sensor  # type: ignore[assignment]
+        self.sensor = cast(SensorKind, sensor)
         self.max_diff = float(max_diff)
 
         t_rgb, rgb_files = read_file_list(root / "rgb.txt", root, "rgb.txt")
@@ -168,13 +170,16 @@ class TumRgbdSequence(Sequence):
             t_depth, depth_files = read_file_list(root / "depth.txt", root, "depth.txt")
             ia, ib = associate(t_rgb, t_depth, self.max_diff)
             if len(ia) < len(t_rgb):
-                logger.info("%s: %d of %d rgb images have a depth image within %.3f s", root, len(ia), len(t_rgb), max_diff)
-            self._depth: list[Path] | None = [depth_files[j] for j in ib]
+                logger.info("%s: %d of %d rgb images have a depth image within %.3f s; the others get depth=None",
+                            root, len(ia), len(t_rgb), max_diff)
+            # Every rgb image stays a frame (a pose per input image); one without a depth partner has depth=None.
+            self._depth: list[Path | None] | None = [None] * len(t_rgb)
+            for i, j in zip(ia, ib):
+                self._depth[i] = depth_files[j]
         else:
-            ia = np.arange(len(t_rgb))
             self._depth = None
-        self._t = t_rgb[ia]
-        self._rgb = [rgb_files[i] for i in ia]
+        self._t = t_rgb
+        self._rgb = list(rgb_files)
         self.calibration = self._read_calibration(root)
 
         gt_path = root / "groundtruth.txt"
@@ -267,11 +272,12 @@ class TumRgbdSequence(Sequence):
             _warn_skip(self._rgb[i], "image does not decode")
             return None
         depth = None
-        if self._depth is not None:
-            raw = cv2.imread(str(self._depth[i]), cv2.IMREAD_UNCHANGED)
+        depth_path = self._depth[i] if self._depth is not None else None
+        if depth_path is not None:
+            raw = cv2.imread(str(depth_path), cv2.IMREAD_UNCHANGED)
             if raw is None or raw.dtype != np.uint16 or raw.shape != image.shape[:2]:
                 why = "does not decode" if raw is None else f"is {raw.dtype} {raw.shape}, expected uint16 {image.shape[:2]}"
-                _warn_skip(self._depth[i], f"depth image {why}")
+                _warn_skip(depth_path, f"depth image {why}")
                 return None
             assert self.calibration.depth_scale is not None
             depth = raw.astype(np.float32) / np.float32(self.calibration.depth_scale)

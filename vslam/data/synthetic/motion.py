@@ -187,16 +187,12 @@ def _wobble(rng: np.random.Generator, n: int, amp: float, acc_max: float, freqs:
     return Channel(amp=tuple(amps), freq=tuple(float(w) for w in f), phase=tuple(rng.uniform(0, 2 * np.pi, n)))
 
 
-def _loop_size(distance: float, laps: float, aspect: float, max_a: float, warn_open: bool) -> tuple[float, float, float]:
-    """Semi-axes (a, b = a/aspect) and laps so that ``laps`` laps cover ``distance``, capped at max_a."""
+def _loop_size(distance: float, laps: float, aspect: float, min_a: float, max_a: float) -> tuple[float, float, float]:
+    """Semi-axes (a, b = a/aspect) so that ``laps`` laps cover ``distance``, with a clipped to
+    [min_a, max_a]; returns them with the laps actually covered."""
     unit = _ellipse_perimeter(1.0, 1.0 / aspect)
-    a = distance / laps / unit
-    if a > max_a:
-        a = max_a
-        laps = distance / (a * unit)
-        if warn_open:
-            logger.warning("synthetic: a %.1f m open path does not fit the room; it covers %.2f laps and returns", distance, laps)
-    return a, a / aspect, laps
+    a = float(np.clip(distance / laps / unit, min_a, max_a))
+    return a, a / aspect, distance / (a * unit)
 
 
 def build_motion(cfg: SyntheticConfig) -> RigMotion:
@@ -209,7 +205,12 @@ def build_motion(cfg: SyntheticConfig) -> RigMotion:
         # Keep >= 1.4 m to every wall: the widest ellipse leaves that much in y.
         max_a = ROOM_HI[0] - 1.6
         aspect = max_a / (ROOM_HI[1] - 1.4)
-        a, b, laps = _loop_size(distance, laps_target, aspect, max_a, warn_open=not cfg.loop)
+        # An open path keeps the default sequence's size (about 8 m around) however short the
+        # sequence, so short test sequences move like long ones; a loop must close in time.
+        min_a = 0.0 if cfg.loop else 1.5
+        a, b, laps = _loop_size(distance, laps_target, aspect, min_a, max_a)
+        if not cfg.loop and laps > 0.75:
+            logger.warning("synthetic: a %.1f m open path does not fit the room; it covers %.2f laps and comes back", distance, laps)
         cx, cy = 0.5 * (ROOM_LO[0] + ROOM_HI[0]), 0.5 * (ROOM_LO[1] + ROOM_HI[1])
         path = BasePath(cx, cy, a, b, 2 * np.pi * laps / T, rng.uniform(0, 2 * np.pi))
         # Look between forward and outward (outward = heading - 90 deg for counter-clockwise travel):

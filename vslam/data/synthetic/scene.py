@@ -168,14 +168,14 @@ def build_scene(cfg: SyntheticConfig, cam_positions: np.ndarray, frame_tau: np.n
     if cfg.scene == "room":
         lo, hi, ppm, tile_len = np.array(ROOM_LO), np.array(ROOM_HI), 200.0, 0.0
         kinds = _room_faces(cfg, rng)
-        style = textures.MarkerStyle(0.03, 0.09, 1.0)
+        style = textures.MarkerStyle(0.03, 0.09, 2.0 if cfg.low_texture else 1.0)
     else:
         x0, x1 = centres[:, 0].min(), centres[:, 0].max()
         lo = np.array([x0 - 30.0, -STREET_HALF_WIDTH, 0.0])
         hi = np.array([max(x0 + 170.0, x1 + 60.0), STREET_HALF_WIDTH, STREET_HEIGHT])
         ppm, tile_len = 60.0, 12.0
         kinds = ["facade", "facade", "facade", "facade", "ground", "sky"]
-        style = textures.MarkerStyle(0.1, 0.3, 3.0)
+        style = textures.MarkerStyle(0.1, 0.3, 6.0 if cfg.low_texture else 3.0)
     atlas = _AtlasBuilder()
     face_x = np.zeros((6, N_TILE_SLOTS), np.float32)
     face_y = np.zeros((6, N_TILE_SLOTS), np.float32)
