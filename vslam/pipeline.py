@@ -81,14 +81,18 @@ def open_dataset(cfg: DatasetConfig) -> Sequence:
 
         scfg = from_dict(SyntheticConfig, dict(cfg.synthetic), "dataset.synthetic", prefix="dataset.synthetic.")
         return SyntheticSequence(scfg, sensor=cfg.sensor)
-    from vslam.data.registry import open_sequence
+    from vslam.data.registry import detect_kind, open_sequence
 
     if not cfg.path:
         raise ConfigError("dataset.path is empty; give the sequence folder (or use kind: synthetic)")
     path = Path(cfg.path).expanduser()
     if not path.is_absolute() and not path.exists():
         path = data_root() / path
-    return open_sequence(path, kind=cfg.kind, sensor=cfg.sensor, max_diff=cfg.max_diff)
+    kind = detect_kind(path) if cfg.kind == "auto" else cfg.kind
+    options: dict[str, Any] = {"sensor": cfg.sensor}
+    if kind in ("tum", "euroc"):  # KITTI frames are matched by index, not time
+        options["max_diff"] = cfg.max_diff
+    return open_sequence(path, kind=kind, **options)
 
 
 STAT_COLUMNS = ("index", "timestamp", "tracked", "n_features", "n_matches", "n_inliers", "ms_features", "ms_depth", "ms_pose", "ms_total")

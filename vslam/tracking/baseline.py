@@ -1,8 +1,9 @@
 """Ground-truth-free frame-to-frame odometry: the clearly-labelled placeholder
 front end until the SLAM core (tracking + local mapping + GTSAM back end) lands.
 
-Each frame is matched (ORB, Hamming, mutual + ratio test) against the last
-frame that tracked well; 3-D points of that reference frame come from its
+Each frame is matched (ORB, Hamming, mutual + ratio test) against a
+reference frame, kept until the inliers against it drop below
+``keyframe_ratio`` of what they were; 3-D points of that reference frame come from its
 depth map (RGB-D) or from left-right triangulation (stereo), and the new pose
 is a RANSAC PnP. Monocular falls back to the essential matrix with a unit
 translation per step, so its scale is arbitrary (evaluate with Sim3). No map,
@@ -33,6 +34,7 @@ class OdometryConfig:
     min_depth: float = 0.1  # metres; depth outside [min, max] is ignored
     max_depth: float = 10.0
     stereo_max_epipolar_px: float = 1.5  # left-right match must lie this close to the epipolar line
+    keyframe_ratio: float = 0.7  # a new reference frame when inliers drop below this fraction of the first
     seed: int = 0  # OpenCV RANSAC seed (cv2.setRNGSeed) so runs are repeatable
 
 
@@ -75,7 +77,8 @@ class FrameToFrameOdometry:
         self.ref: _Ref | None = None
         self.T_world_cam = np.eye(4)
         self.velocity = np.eye(4)  # T_prev_cur of the last tracked step, for constant-velocity prediction
-        self._since_ref = 0  # frames since the reference frame (>1 after lost frames)
+        self._prev_tracked = False
+        self._ref_inliers: int | None = None  # inliers of the first frame measured against the reference
         if sensor == "stereo" and (calib.cam1 is None or calib.T_cam0_cam1 is None):
             raise ValueError("stereo odometry needs cam1 and its extrinsics in the calibration")
 
@@ -194,18 +197,31 @@ class FrameToFrameOdometry:
                 has3d = ~np.isnan(self.ref.pts_cam[m[:, 0], 0]) if len(m) else np.zeros(0, bool)
                 mm = m[has3d]
                 T_ref_cur, est.n_inliers = self._pnp(self.ref.pts_cam[mm[:, 0]], uv[mm[:, 1]])
-            self._since_ref += 1
             if T_ref_cur is not None:
-                if self._since_ref == 1:  # a gap says nothing reliable about the per-frame motion
-                    self.velocity = T_ref_cur
-                self.T_world_cam = self.ref.T_world_cam @ T_ref_cur
+                T_new = self.ref.T_world_cam @ T_ref_cur
+                if self._prev_tracked:  # a gap says nothing reliable about the per-frame motion
+                    self.velocity = inv_T(self.T_world_cam) @ T_new
+                self.T_world_cam = T_new
                 est.tracked = True
+                if self._ref_inliers is None:
+                    self._ref_inliers = est.n_inliers
             else:
                 self.T_world_cam = self.T_world_cam @ self.velocity  # constant-velocity guess
         t3 = time.perf_counter()
         est.T_world_cam = self.T_world_cam.copy()
-        if est.tracked:
+        self._prev_tracked = est.tracked
+        # Keep the reference while it still explains most matches: measuring against one anchor
+        # instead of chaining every frame is what keeps a slow or static camera from drifting.
+        # A frame without enough 3-D points (no depth) can never become the anchor.
+        usable = self.sensor == "mono" or int(np.sum(~np.isnan(pts[:, 0]))) >= self.cfg.min_inliers
+        weak = (
+            self.sensor == "mono"  # unit-length steps only make sense between consecutive frames
+            or self.ref is None
+            or self._ref_inliers is None
+            or est.n_inliers < self.cfg.keyframe_ratio * self._ref_inliers
+        )
+        if est.tracked and usable and weak:
             self.ref = _Ref(self.T_world_cam.copy(), uv, desc, pts)
-            self._since_ref = 0
+            self._ref_inliers = None
         est.times_ms = {"features": (t1 - t0) * 1e3, "depth": (t2 - t1) * 1e3, "pose": (t3 - t2) * 1e3}
         return est

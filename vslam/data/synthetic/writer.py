@@ -19,7 +19,10 @@
 from __future__ import annotations
 
 import logging
+import os
 import time
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Iterable, TextIO
 
@@ -61,15 +64,19 @@ def write_sequence(seq: SyntheticSequence, out_dir: str | Path, layouts: Iterabl
     out.mkdir(parents=True, exist_ok=True)
     (out / "synthetic.yaml").write_text(yaml.safe_dump(to_dict(seq.cfg), sort_keys=False))
     roots = {"tum": out / "rgbd", "asl": out / "mav0"}
-    tum = _TumWriter(seq, roots["tum"]) if "tum" in layouts else None
-    asl = _AslWriter(seq, roots["asl"]) if "asl" in layouts else None
     start = time.perf_counter()
-    for i in range(len(seq)):
-        r = seq.render(i, right=asl is not None)
-        if tum:
-            tum.frame(i, r)
-        if asl:
-            asl.frame(i, r)
+    # cv2.imwrite releases the GIL: PNG encoding on a few threads while the next frame renders.
+    with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
+        images = _ImageQueue(pool)
+        tum = _TumWriter(seq, roots["tum"], images) if "tum" in layouts else None
+        asl = _AslWriter(seq, roots["asl"], images) if "asl" in layouts else None
+        for i in range(len(seq)):
+            r = seq.render(i, right=asl is not None)
+            if tum:
+                tum.frame(i, r)
+            if asl:
+                asl.frame(i, r)
+        images.drain()
     for w in (tum, asl):
         if w:
             w.close()
@@ -77,13 +84,35 @@ def write_sequence(seq: SyntheticSequence, out_dir: str | Path, layouts: Iterabl
     return {k: roots[k] for k in layouts}
 
 
+class _ImageQueue:
+    """PNG writes in flight, bounded so memory stays at a few frames."""
+
+    def __init__(self, pool: ThreadPoolExecutor, max_pending: int = 32):
+        self.pool, self.max_pending = pool, max_pending
+        self.pending: deque[tuple[Path, Future[bool]]] = deque()
+
+    def write(self, path: Path, img: np.ndarray) -> None:
+        self.pending.append((path, self.pool.submit(cv2.imwrite, str(path), img, PNG_FAST)))
+        while len(self.pending) > self.max_pending:
+            self._finish_one()
+
+    def drain(self) -> None:
+        while self.pending:
+            self._finish_one()
+
+    def _finish_one(self) -> None:
+        path, fut = self.pending.popleft()
+        if not fut.result():
+            raise OSError(f"could not write {path}")
+
+
 def _header(f: TextIO, what: str, name: str, columns: str) -> None:
     f.write(f"# {what}\n# file: '{name}'\n# {columns}\n")
 
 
 class _TumWriter:
-    def __init__(self, seq: SyntheticSequence, root: Path):
-        self.seq, self.root = seq, root
+    def __init__(self, seq: SyntheticSequence, root: Path, images: _ImageQueue):
+        self.seq, self.root, self.images = seq, root, images
         for sub in ("rgb", "depth", "mask"):
             (root / sub).mkdir(parents=True, exist_ok=True)
         self.t = seq.timestamps()
@@ -117,9 +146,9 @@ class _TumWriter:
 
     def frame(self, i: int, r: SyntheticRender) -> None:
         stamp = f"{self.t[i]:.6f}"
-        cv2.imwrite(str(self.root / "rgb" / f"{stamp}.png"), r.image, PNG_FAST)
-        cv2.imwrite(str(self.root / "depth" / f"{stamp}.png"), depth_to_png(r.depth), PNG_FAST)
-        cv2.imwrite(str(self.root / "mask" / f"{stamp}.png"), r.mask.astype(np.uint8) * 255, PNG_FAST)
+        self.images.write(self.root / "rgb" / f"{stamp}.png", r.image)
+        self.images.write(self.root / "depth" / f"{stamp}.png", depth_to_png(r.depth))
+        self.images.write(self.root / "mask" / f"{stamp}.png", r.mask.astype(np.uint8) * 255)
         for key in ("rgb", "depth", "mask"):
             self.files[key].write(f"{stamp} {key}/{stamp}.png\n")
         for oid, (x1, y1, x2, y2) in zip(r.box_ids, r.boxes):
@@ -147,8 +176,8 @@ def _rate(hz: float) -> str:
 
 
 class _AslWriter:
-    def __init__(self, seq: SyntheticSequence, mav0: Path):
-        self.seq, self.mav0 = seq, mav0
+    def __init__(self, seq: SyntheticSequence, mav0: Path, images: _ImageQueue):
+        self.seq, self.mav0, self.images = seq, mav0, images
         self.ns = seq.timestamps_ns()
         self.csv: dict[str, TextIO] = {}
         cal = seq.calibration
@@ -211,7 +240,7 @@ class _AslWriter:
         name = f"{self.ns[i]}.png"
         for cam, img in (("cam0", r.image), ("cam1", r.right)):
             assert img is not None
-            cv2.imwrite(str(self.mav0 / cam / "data" / name), cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), PNG_FAST)
+            self.images.write(self.mav0 / cam / "data" / name, cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))
             self.csv[cam].write(f"{self.ns[i]},{name}\n")
 
     def close(self) -> None:
