@@ -180,11 +180,11 @@ def _ellipse_perimeter(a: float, b: float) -> float:
     return float(np.pi * (3 * (a + b) - np.sqrt((3 * a + b) * (a + 3 * b))))
 
 
-def _wobble(rng: np.random.Generator, n: int, amp: float, acc_max: float, freqs: np.ndarray) -> Channel:
-    """n small sines; amplitude capped so amp * freq^2 <= acc_max keeps the motion hand-held, not violent."""
-    f = rng.choice(freqs, size=n, replace=False)
+def _wobble(rng: np.random.Generator, amp: float, acc_max: float, freqs: np.ndarray, c0: float = 0.0) -> Channel:
+    """c0 plus two small sines; amplitude capped so amp * freq^2 <= acc_max keeps the motion hand-held, not violent."""
+    f = rng.choice(freqs, size=2, replace=False)
     amps = [min(amp * rng.uniform(0.5, 1.0), acc_max / (w * w)) for w in f]
-    return Channel(amp=tuple(amps), freq=tuple(float(w) for w in f), phase=tuple(rng.uniform(0, 2 * np.pi, n)))
+    return Channel(c0, 0.0, tuple(amps), tuple(float(w) for w in f), tuple(rng.uniform(0, 2 * np.pi, 2)))
 
 
 def _loop_size(distance: float, laps: float, aspect: float, min_a: float, max_a: float) -> tuple[float, float, float]:
@@ -198,38 +198,43 @@ def _loop_size(distance: float, laps: float, aspect: float, min_a: float, max_a:
 def build_motion(cfg: SyntheticConfig) -> RigMotion:
     """The body trajectory of ``cfg``: seeded, smooth, analytic; see the module doc."""
     rng = np.random.default_rng([cfg.seed, 1])  # stream 1: motion (independent of textures and IMU noise)
-    T = cfg.duration
-    distance = cfg.mean_speed * T
-    laps_target = LOOP_LAPS if cfg.loop else OPEN_LAPS
+    distance = cfg.mean_speed * cfg.duration
     if cfg.scene == "room":
-        # Keep >= 1.4 m to every wall: the widest ellipse leaves that much in y.
-        max_a = ROOM_HI[0] - 1.6
-        aspect = max_a / (ROOM_HI[1] - 1.4)
-        # An open path keeps the default sequence's size (about 8 m around) however short the
-        # sequence, so short test sequences move like long ones; a loop must close in time.
-        min_a = 0.0 if cfg.loop else 1.5
-        a, b, laps = _loop_size(distance, laps_target, aspect, min_a, max_a)
-        if not cfg.loop and laps > 0.75:
-            logger.warning("synthetic: a %.1f m open path does not fit the room; it covers %.2f laps and comes back", distance, laps)
-        cx, cy = 0.5 * (ROOM_LO[0] + ROOM_HI[0]), 0.5 * (ROOM_LO[1] + ROOM_HI[1])
-        path = BasePath(cx, cy, a, b, 2 * np.pi * laps / T, rng.uniform(0, 2 * np.pi))
+        path = _room_path(cfg, rng, distance)
         # Look between forward and outward (outward = heading - 90 deg for counter-clockwise travel):
         # walls at 1.5-6 m and sideways parallax for monocular initialisation.
         yaw_offset = -0.5
-    elif cfg.loop:
-        # Lanes at |y| <= 2.5 m (sidewalks start at 4 m): a circle while it fits, then a loop
-        # elongated down the street.
-        perimeter = distance / laps_target
-        a = b = min(perimeter / (2 * np.pi), 2.5)
-        if perimeter > 2 * np.pi * 2.5:
-            a = _solve_a(perimeter, b)
-        laps = distance / _ellipse_perimeter(a, b)
-        path = BasePath(0.0, 0.0, a, b, 2 * np.pi * laps / T, rng.uniform(0, 2 * np.pi))
-        yaw_offset = 0.0
     else:
-        path = BasePath(0.0, rng.uniform(-1.0, 1.0), line_speed=cfg.mean_speed)
+        path = _street_path(cfg, rng, distance)
         yaw_offset = 0.0
     return RigMotion(path, *_wobbles(rng, cfg, path, yaw_offset), T_body_cam0=T_BODY_CAM0)
+
+
+def _room_path(cfg: SyntheticConfig, rng: np.random.Generator, distance: float) -> BasePath:
+    """An ellipse around the room centre that keeps >= 1.4 m to every wall."""
+    max_a = ROOM_HI[0] - 1.6
+    aspect = max_a / (ROOM_HI[1] - 1.4)
+    # An open path keeps the default sequence's size (about 8 m around) however short the
+    # sequence, so short test sequences move like long ones; a loop must close in time.
+    min_a = 0.0 if cfg.loop else 1.5
+    a, b, laps = _loop_size(distance, LOOP_LAPS if cfg.loop else OPEN_LAPS, aspect, min_a, max_a)
+    if not cfg.loop and laps > 0.75:
+        logger.warning("synthetic: a %.1f m open path does not fit the room; it covers %.2f laps and comes back", distance, laps)
+    cx, cy = 0.5 * (ROOM_LO[0] + ROOM_HI[0]), 0.5 * (ROOM_LO[1] + ROOM_HI[1])
+    return BasePath(cx, cy, a, b, 2 * np.pi * laps / cfg.duration, rng.uniform(0, 2 * np.pi))
+
+
+def _street_path(cfg: SyntheticConfig, rng: np.random.Generator, distance: float) -> BasePath:
+    """Straight down the street (+x), or a loop in the lanes (|y| <= 2.5 m; sidewalks start at 4 m):
+    a circle while it fits, then an ellipse elongated down the street."""
+    if not cfg.loop:
+        return BasePath(0.0, rng.uniform(-1.0, 1.0), line_speed=cfg.mean_speed)
+    perimeter = distance / LOOP_LAPS
+    a = b = min(perimeter / (2 * np.pi), 2.5)
+    if perimeter > 2 * np.pi * 2.5:
+        a = _solve_a(perimeter, b)
+    laps = distance / _ellipse_perimeter(a, b)
+    return BasePath(0.0, 0.0, a, b, 2 * np.pi * laps / cfg.duration, rng.uniform(0, 2 * np.pi))
 
 
 def _solve_a(perimeter: float, b: float) -> float:
@@ -248,16 +253,12 @@ def _wobbles(rng: np.random.Generator, cfg: SyntheticConfig, path: BasePath, yaw
     if path.is_loop:
         k = np.unique(np.maximum(1, np.round(base / path.omega)))
         base = (k if len(k) >= 4 else np.arange(1, 5)) * path.omega
-    street = cfg.scene == "street"
-    x = _wobble(rng, 2, 0.04, 1.0, base)
-    y = _wobble(rng, 2, 0.6 if street and not path.is_loop else 0.04, 1.0, base)
-    z = _wobble(rng, 2, 0.03, 0.8, base)
-    height = CAMERA_HEIGHT + rng.uniform(-0.1, 0.1)
-    z = Channel(height, 0.0, z.amp, z.freq, z.phase)
-    yaw = _wobble(rng, 2, 0.06, 1.5, base)
-    yaw = Channel(yaw_offset, 0.0, yaw.amp, yaw.freq, yaw.phase)
-    pitch = _wobble(rng, 2, 0.04, 1.5, base)
-    pitch = Channel(-0.08, 0.0, pitch.amp, pitch.freq, pitch.phase)  # a little nose-down
-    roll = _wobble(rng, 2, 0.03, 1.5, base)
-    return x, y, z, yaw, pitch, roll
-
+    lane_drift = 0.6 if cfg.scene == "street" and not path.is_loop else 0.04  # slow lane changes
+    return (
+        _wobble(rng, 0.04, 1.0, base),  # x
+        _wobble(rng, lane_drift, 1.0, base),  # y
+        _wobble(rng, 0.03, 0.8, base, c0=CAMERA_HEIGHT + rng.uniform(-0.1, 0.1)),  # z
+        _wobble(rng, 0.06, 1.5, base, c0=yaw_offset),  # yaw, added to the heading
+        _wobble(rng, 0.04, 1.5, base, c0=-0.08),  # pitch: a little nose-down
+        _wobble(rng, 0.03, 1.5, base),  # roll
+    )

@@ -11,10 +11,13 @@ optical axis) and depth maps are exact. Per view:
 3. hit points -> face (s, r) metres -> texture atlas coordinates, and one
    ``cv2.remap`` (bilinear) produces the colour image.
 
-Measured speed (640x480, one core: ``OMP_NUM_THREADS=1``, ``cv2.setNumThreads(1)``,
-``taskset -c 0``; room, 3 movers, left image+depth+mask+boxes and right image):
-MEASURED_MS ms per frame on the development machine (an Intel Xeon,
-see tests/data/test_synthetic.py::test_render_speed_is_logged).
+Measured speed, one full frame (left image + depth + mask + boxes and the right
+image) at 640x480 on one core (``taskset -c 1``, ``cv2.setNumThreads(1)``) of a
+shared 2-core AMD EPYC VM, 60 frames of the default 300-frame sequences with 3
+movers: room 23 ms median (17 ms min, 28 ms p90, about 43 frames/s); street
+27 ms median (24 ms min, 39 ms p90). Half of it is the two ``cv2.remap`` calls
+and the box trace; movers cost little because they are traced only inside their
+projected windows.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from vslam.data.synthetic.scene import FACE_AXES, N_TILE_SLOTS, Mover, Scene
+from vslam.data.synthetic.scene import FACE_AXES, Mover, Scene
 from vslam.data.types import PinholeCamera
 
 
@@ -52,14 +55,12 @@ class Renderer:
         # Per static face: atlas position of texel (0,0) shifted by the box corner and the
         # half texel of the pixel-centre convention, so map = table[face] + coord * ppm.
         ppm = scene.ppm
-        self._flat_x = np.zeros((6, N_TILE_SLOTS), np.float32)
-        self._flat_y = np.zeros((6, N_TILE_SLOTS), np.float32)
+        self._face_x = np.zeros(6, np.float32)
+        self._face_y = np.zeros(6, np.float32)
         for f in range(6):
             sa, ra = FACE_AXES[f // 2]
-            self._flat_x[f] = scene.face_x[f] - scene.lo[sa] * ppm - 0.5
-            self._flat_y[f] = scene.face_y[f] - scene.lo[ra] * ppm - 0.5
-        self._tile = scene.tile.astype(np.float32)
-        self._inv_tile = np.where(scene.tile > 0, 1.0 / np.maximum(scene.tile, 1e-9), 0.0).astype(np.float32)
+            self._face_x[f] = scene.face_x[f] - scene.lo[sa] * ppm - 0.5
+            self._face_y[f] = scene.face_y[f] - scene.lo[ra] * ppm - 0.5
 
     def render(self, T_world_cam: np.ndarray, tau: float, movers: bool = True) -> View:
         """Render from pose T_world_cam (4,4) at time tau (s since frame 0, positions the movers)."""
@@ -93,21 +94,15 @@ class Renderer:
     def _static_maps(self, C: np.ndarray, D: np.ndarray, t: np.ndarray, face: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Atlas coordinates (H,W) float32 of the static hit points."""
         ppm = np.float32(self.scene.ppm)
-        px = np.float32(C[0] * ppm) + (t * ppm) * D[0]
-        py = np.float32(C[1] * ppm) + (t * ppm) * D[1]
-        pz = np.float32(C[2] * ppm) + (t * ppm) * D[2]
-        on_x = face < 2
-        s = np.where(on_x, py, px)  # texels from the world origin along the face's s axis
-        r = np.where(face >= 4, py, pz)
-        if not self.scene.tiled:
-            return self._flat_x[:, 0][face] + s, self._flat_y[:, 0][face] + r
-        # Tiled faces: s measured from the face start, wrapped into its tile, slot picks the variant.
-        sa_lo = np.where(on_x, np.float32(self.scene.lo[1] * ppm), np.float32(self.scene.lo[0] * ppm))
-        s_rel = s - sa_lo
-        n = np.floor(s_rel * (self._inv_tile[face] / ppm))
-        s_loc = s_rel - n * (self._tile[face] * ppm)
-        slot = face.astype(np.int32) * N_TILE_SLOTS + (n.astype(np.int32) % N_TILE_SLOTS)
-        return self._flat_x.reshape(-1)[slot] + sa_lo + s_loc, self._flat_y.reshape(-1)[slot] + r
+        tp = t * ppm
+        px = np.float32(C[0] * ppm) + tp * D[0]  # texels from the world origin
+        py = np.float32(C[1] * ppm) + tp * D[1]
+        pz = np.float32(C[2] * ppm) + tp * D[2]
+        s = np.where(face < 2, py, px)  # the face's s axis: y on x-faces, else x
+        r = np.where(face >= 4, py, pz)  # the face's r axis: y on z-faces, else z
+        s += self._face_x[face]
+        r += self._face_y[face]
+        return s, r
 
     def _window(self, lo: np.ndarray, hi: np.ndarray, T_world_cam: np.ndarray) -> tuple[slice, slice] | None:
         """Image rows/cols the box can cover (from its projected corners), None when it cannot be seen."""

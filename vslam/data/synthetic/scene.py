@@ -6,9 +6,10 @@ A face's 2-D texture coordinates (s, r) are metres from the box's ``lo``
 corner along the axes ``FACE_AXES[k]``. All textures live in one atlas image
 so the renderer samples every face with a single ``cv2.remap``.
 
-"street" faces are long: their textures are tiles of ``tile`` metres along s,
-each tile showing one of a few variants picked by a seeded table, so the
-atlas stays small while neighbouring tiles differ.
+"street" faces are long: their textures are rows of 12 m tiles, each a copy
+of one of four seeded variants, so generation stays fast while neighbouring
+tiles differ; the rows are laid out in full in the atlas so the renderer
+needs no per-pixel tiling.
 """
 
 from __future__ import annotations
@@ -25,13 +26,13 @@ from vslam.data.synthetic.config import ROOM_HI, ROOM_LO, STREET_HALF_WIDTH, STR
 logger = logging.getLogger(__name__)
 
 FACE_AXES = ((1, 2), (0, 2), (0, 1))  # (s axis, r axis) for normal axis k
-N_TILE_SLOTS = 64  # tile index modulo this picks the variant; 64 tiles of 12 m = 768 m before repeating
+MAX_STRIP = 32000  # texels: cv2.remap addresses the atlas with int16 coordinates
 PAD = 1  # texels of border around each atlas patch so bilinear sampling never reads a neighbour
 PERSON_SIZE = (0.5, 0.5, 1.7)
-CLEARANCE = 0.8  # metres between a mover's box and any camera centre, at every frame
+CLEARANCE = 0.6  # metres between a mover's box and any camera centre, at every frame
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Mover:
     """Axis-aligned box whose centre moves as
     centre + vel*tau + amp*(u1*sin(omega*tau + phase) + u2*cos(omega*tau + phase)).
@@ -63,13 +64,12 @@ class Mover:
         return c - self.size / 2, c + self.size / 2
 
 
-@dataclass
+@dataclass(eq=False)
 class Scene:
     """Static box (lo, hi), texture atlas and movers.
 
-    face_x, face_y: (6, N_TILE_SLOTS) float32 atlas position of texel (0,0) of the
-    patch face f shows in tile slot n; tile: (6,) metres per tile along s, 0 for a
-    face covered by one patch. landmarks: (M,3) world centres of the markers.
+    ppm: texels per metre of every face. face_x, face_y: (6,) atlas position of
+    texel (0,0) of each static face. landmarks: (M,3) world centres of the markers.
     """
 
     kind: str
@@ -79,13 +79,8 @@ class Scene:
     atlas: np.ndarray
     face_x: np.ndarray
     face_y: np.ndarray
-    tile: np.ndarray
     movers: list[Mover]
     landmarks: np.ndarray
-
-    @property
-    def tiled(self) -> bool:
-        return bool(np.any(self.tile > 0))
 
 
 class _AtlasBuilder:
@@ -96,10 +91,9 @@ class _AtlasBuilder:
         self.patches: list[tuple[int, int, np.ndarray]] = []
         self.x = self.y = self.row_h = 0
 
-    def add(self, img: np.ndarray, wrap: bool) -> tuple[float, float]:
+    def add(self, img: np.ndarray) -> tuple[float, float]:
         """Place a patch; returns the atlas (x, y) of its texel (0,0)."""
-        border = cv2.BORDER_WRAP if wrap else cv2.BORDER_REPLICATE
-        padded = cv2.copyMakeBorder(img, PAD, PAD, PAD, PAD, border)
+        padded = cv2.copyMakeBorder(img, PAD, PAD, PAD, PAD, cv2.BORDER_REPLICATE)
         h, w = padded.shape[:2]
         if self.x + w > self.width:
             self.x, self.y, self.row_h = 0, self.y + self.row_h, 0
@@ -145,7 +139,7 @@ def _room_faces(cfg: SyntheticConfig, rng: np.random.Generator) -> list[str]:
 
 
 def _make_patch(kind: str, rng: np.random.Generator, size: tuple[float, float], ppm: float, low: bool) -> np.ndarray:
-    w, h = int(np.ceil(size[0] * ppm)), int(np.ceil(size[1] * ppm))
+    w, h = int(np.ceil(size[0] * ppm - 1e-6)), int(np.ceil(size[1] * ppm - 1e-6))
     makers = {
         "rich": lambda: textures.rich(rng, h, w, ppm),
         "flat": lambda: textures.flat(rng, h, w, ppm),
@@ -164,59 +158,55 @@ def build_scene(cfg: SyntheticConfig, cam_positions: np.ndarray, frame_tau: np.n
     CLEARANCE from them.
     """
     rng = np.random.default_rng([cfg.seed, 3])  # stream 3: scene and textures
-    centres = cam_positions.reshape(-1, 3)
     if cfg.scene == "room":
-        lo, hi, ppm, tile_len = np.array(ROOM_LO), np.array(ROOM_HI), 200.0, 0.0
+        lo, hi, ppm, tile = np.array(ROOM_LO), np.array(ROOM_HI), 200.0, 0.0
         kinds = _room_faces(cfg, rng)
         style = textures.MarkerStyle(0.03, 0.09, 2.0 if cfg.low_texture else 1.0)
     else:
-        x0, x1 = centres[:, 0].min(), centres[:, 0].max()
+        x0, x1 = cam_positions[..., 0].min(), cam_positions[..., 0].max()
         lo = np.array([x0 - 30.0, -STREET_HALF_WIDTH, 0.0])
         hi = np.array([max(x0 + 170.0, x1 + 60.0), STREET_HALF_WIDTH, STREET_HEIGHT])
-        ppm, tile_len = 60.0, 12.0
+        ppm, tile = 60.0, 12.0
+        if (hi[0] - lo[0]) * ppm > MAX_STRIP:
+            ppm = MAX_STRIP / (hi[0] - lo[0])
+            tile = np.ceil(12.0 * ppm) / ppm  # whole texels per tile keep the tiles seamless
+            logger.warning("synthetic: %.0f m street; textures coarsened to %.1f texels/m", hi[0] - lo[0], ppm)
         kinds = ["facade", "facade", "facade", "facade", "ground", "sky"]
         style = textures.MarkerStyle(0.1, 0.3, 6.0 if cfg.low_texture else 3.0)
-    atlas = _AtlasBuilder()
-    face_x = np.zeros((6, N_TILE_SLOTS), np.float32)
-    face_y = np.zeros((6, N_TILE_SLOTS), np.float32)
-    tile = np.zeros(6)
-    landmarks = []
+    images, landmarks = [], []
     for f in range(6):
-        size = _face_size(lo, hi, f)
-        tiled = tile_len > 0 and f // 2 != 0  # street: every face but the two end walls
-        with_markers = cfg.markers and kinds[f] != "sky"
-        n_var = 4 if tiled else 1
-        slots = rng.integers(0, n_var, N_TILE_SLOTS)
-        patch_size = (tile_len, size[1]) if tiled else size
-        var_pos, var_markers = [], []
-        for _ in range(n_var):
-            img = _make_patch(kinds[f], rng, patch_size, ppm, cfg.low_texture)
-            mk = textures.draw_markers(rng, img, ppm, style) if with_markers else np.zeros((0, 2))
-            var_pos.append(atlas.add(img, wrap=tiled))
-            var_markers.append(mk)
-        face_x[f] = [var_pos[v][0] for v in slots]
-        face_y[f] = [var_pos[v][1] for v in slots]
-        tile[f] = tile_len if tiled else 0.0
-        landmarks.append(_face_landmarks(lo, hi, f, var_markers, slots, tile[f], style.r_out))
-    movers = _place_movers(cfg, rng, lo, hi, centres.reshape(len(frame_tau), -1, 3), frame_tau, atlas, ppm)
-    return Scene(cfg.scene, lo, hi, ppm, atlas.build(), face_x, face_y, tile, movers, np.concatenate(landmarks))
+        tiled = tile > 0 and f // 2 != 0  # street: every face but the two end walls
+        img, mk = _face_texture(cfg, rng, kinds[f], _face_size(lo, hi, f), ppm, tile if tiled else 0.0, style)
+        images.append(img)
+        landmarks.append(_face_point(lo, hi, f, mk[:, 0], mk[:, 1]))
+    atlas = _AtlasBuilder(max(4096, max(img.shape[1] for img in images) + 2 * PAD))
+    pos = np.array([atlas.add(img) for img in images])
+    movers = _place_movers(cfg, rng, lo, hi, cam_positions, frame_tau, atlas, ppm)
+    return Scene(cfg.scene, lo, hi, ppm, atlas.build(), pos[:, 0], pos[:, 1], movers, np.concatenate(landmarks))
 
 
-def _face_landmarks(
-    lo: np.ndarray, hi: np.ndarray, f: int, var_markers: list[np.ndarray], slots: np.ndarray, tile: float, r_out: float
-) -> np.ndarray:
-    """World points of every marker instance on face f (one per tile for tiled faces)."""
-    s_len, _ = _face_size(lo, hi, f)
+def _face_texture(
+    cfg: SyntheticConfig, rng: np.random.Generator, kind: str, size: tuple[float, float], ppm: float, tile: float,
+    style: textures.MarkerStyle,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Texture of a face of ``size`` (s, r) metres and its markers (M,2) in face metres.
+
+    tile > 0: the face is a row of tiles, each a copy of one of 4 seeded variants,
+    so a 200 m street costs 4 tiles of generation and neighbouring tiles differ.
+    """
+    with_markers = cfg.markers and kind != "sky"
+    n_var = 4 if tile > 0 else 1
+    variants, markers = [], []
+    for _ in range(n_var):
+        img = _make_patch(kind, rng, (tile, size[1]) if tile > 0 else size, ppm, cfg.low_texture)
+        markers.append(textures.draw_markers(rng, img, ppm, style) if with_markers else np.zeros((0, 2)))
+        variants.append(img)
     if tile <= 0:
-        mk = var_markers[0]
-        return _face_point(lo, hi, f, mk[:, 0], mk[:, 1])
-    pts = []
-    for n in range(int(np.ceil(s_len / tile))):
-        mk = var_markers[slots[n % N_TILE_SLOTS]]
-        s = mk[:, 0] + n * tile
-        keep = s <= s_len - r_out  # the face may end inside its last tile
-        pts.append(_face_point(lo, hi, f, s[keep], mk[keep, 1]))
-    return np.concatenate(pts) if pts else np.zeros((0, 3))
+        return variants[0], markers[0]
+    order = rng.integers(0, n_var, int(np.ceil(size[0] / tile)))
+    strip = np.concatenate([variants[v] for v in order], axis=1)[:, : int(np.ceil(size[0] * ppm))]
+    mk = np.concatenate([markers[v] + (n * tile, 0.0) for n, v in enumerate(order)])
+    return np.ascontiguousarray(strip), mk[mk[:, 0] <= size[0] - style.r_out]
 
 
 def _candidate_mover(cfg: SyntheticConfig, rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray, x_range: tuple[float, float]) -> Mover:
@@ -238,7 +228,7 @@ def _candidate_mover(cfg: SyntheticConfig, rng: np.random.Generator, lo: np.ndar
     wall = int(rng.integers(0, 4))  # walk back and forth along a wall
     k, along = (0, 1) if wall < 2 else (1, 0)
     centre = np.zeros(3)
-    d = rng.uniform(0.5, 1.2)
+    d = rng.uniform(0.35, 1.2)
     centre[k] = lo[k] + d if wall % 2 == 0 else hi[k] - d
     span = hi[along] - lo[along] - 1.0
     amp = rng.uniform(0.6, span / 2 - 0.2)
@@ -280,6 +270,6 @@ def _place_movers(
         for f in range(6):
             s_len, r_len = _face_size(np.zeros(3), m.size, f)
             img = textures.mover(rng, int(np.ceil(r_len * ppm)), int(np.ceil(s_len * ppm)), ppm)
-            fx[f], fy[f] = atlas.add(img, wrap=False)
+            fx[f], fy[f] = atlas.add(img)
         movers.append(Mover(m.size, m.centre, m.vel, m.u1, m.u2, m.amp, m.omega, m.phase, fx, fy))
     return movers

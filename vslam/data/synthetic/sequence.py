@@ -6,6 +6,7 @@ second at the default size); frames are ray cast lazily when iterated.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 from dataclasses import dataclass
@@ -102,7 +103,10 @@ class SyntheticSequence(Sequence):
             self._blackout[start : start + length] = True
         rng = np.random.default_rng([cfg.seed, 4])  # stream 4: lighting
         self._light = (rng.uniform(3.0, 5.0), rng.uniform(0, 2 * np.pi), rng.uniform(5.0, 8.0), rng.uniform(0, 2 * np.pi))
-        logger.debug("%s: %d frames, %d IMU samples, %d movers, atlas %s", self.name, len(self), len(self._imu), len(self.scene.movers), self.scene.atlas.shape)
+        logger.debug(
+            "%s: %d frames, %d IMU samples, %d movers, atlas %s",
+            self.name, len(self), len(self._imu), len(self.scene.movers), self.scene.atlas.shape,
+        )
 
     # ------------------------------------------------------------------ Sequence interface
 
@@ -134,8 +138,8 @@ class SyntheticSequence(Sequence):
         return self._imu_ns.copy()
 
     def imu_truth(self) -> ImuTruth:
-        """True state and biases at every IMU sample (the test oracle for inertial code)."""
-        return self._imu_truth
+        """True state and biases at every IMU sample (the test oracle for inertial code); a copy."""
+        return copy.deepcopy(self._imu_truth)
 
     def landmarks(self) -> np.ndarray:
         """(M,3) world points, metres: centres of the dark marker dots painted on the static faces."""
