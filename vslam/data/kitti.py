@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import logging
 import re
-from collections.abc import Iterator
 from pathlib import Path
 from typing import cast
 
@@ -203,12 +202,6 @@ class KittiSequence(Sequence):
 
     def timestamps(self) -> np.ndarray:
         return self._t.copy()
-
-    def __iter__(self) -> Iterator[Frame]:
-        for i in range(len(self)):
-            frame = self._load(i)
-            if frame is not None:
-                yield frame
 
     def groundtruth(self) -> Trajectory | None:
         """T_world_cam of the left camera read, one pose per frame (None without poses/NN.txt)."""

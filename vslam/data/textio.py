@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import yaml
 
 from vslam.errors import DatasetError
 
@@ -93,3 +95,42 @@ def check_increasing(path: Path, t: np.ndarray, lines: np.ndarray, *, strict: bo
         k = int(bad[0]) + 1
         kind = "repeats" if d[bad[0]] == 0 else "goes back in time"
         raise DatasetError(path, f"timestamp {float(t[k])!r} {kind} (previous {float(t[k - 1])!r}); timestamps must increase", int(lines[k]))
+
+
+def read_yaml_mapping(path: Path) -> tuple[dict[str, Any], dict[str, int]]:
+    """A YAML file's top-level mapping and the 1-based line of each key.
+
+    OpenCV ``FileStorage`` files (EuRoC ``sensor.yaml``) start with a
+    ``%YAML:1.0`` directive that PyYAML rejects; such lines are blanked so
+    that line numbers in errors still match the file.
+    """
+    require_file(path, "YAML file")
+    lines = path.read_text().splitlines()
+    clean = "\n".join("" if ln.lstrip().startswith("%YAML") else ln for ln in lines)
+    try:
+        node = yaml.compose(clean, Loader=yaml.SafeLoader)
+        data = yaml.safe_load(clean)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise DatasetError(path, f"not valid YAML: {problem}", mark.line + 1 if mark else None) from None
+    if not isinstance(data, dict) or node is None:
+        raise DatasetError(path, "expected a mapping of keys at the top level")
+    key_lines = {str(k.value): k.start_mark.line + 1 for k, _ in node.value}
+    return data, key_lines
+
+
+def yaml_numbers(path: Path, data: dict[str, Any], lines: dict[str, int], key: str, count: int | tuple[int, ...]) -> list[float]:
+    """``data[key]`` as a list of finite floats of an allowed length, else DatasetError at the key's line."""
+    counts = (count,) if isinstance(count, int) else count
+    if key not in data:
+        raise DatasetError(path, f"missing key {key!r}")
+    value = data[key]
+    if not isinstance(value, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+        raise DatasetError(path, f"{key!r} must be a list of numbers, got {value!r}", lines.get(key))
+    if len(value) not in counts:
+        want = " or ".join(str(c) for c in counts)
+        raise DatasetError(path, f"{key!r} must have {want} numbers, found {len(value)}", lines.get(key))
+    if not all(np.isfinite(value)):
+        raise DatasetError(path, f"{key!r} holds a value that is not finite", lines.get(key))
+    return [float(v) for v in value]

@@ -19,15 +19,14 @@ from __future__ import annotations
 
 import logging
 import re
-from collections.abc import Iterator
 from pathlib import Path
 from typing import cast
 
 import cv2
 import numpy as np
 
-from vslam.data.euroc import parse_distortion_model, read_yaml_mapping
-from vslam.data.textio import check_increasing, read_numeric, read_rows, require_dir, require_file
+from vslam.data.euroc import parse_distortion_model
+from vslam.data.textio import check_increasing, read_numeric, read_rows, read_yaml_mapping, require_dir, require_file
 from vslam.data.trajectory import Trajectory, read_trajectory
 from vslam.data.types import Calibration, Frame, PinholeCamera, SensorKind, Sequence
 from vslam.errors import DatasetError
@@ -237,12 +236,6 @@ class TumRgbdSequence(Sequence):
 
     def timestamps(self) -> np.ndarray:
         return self._t.copy()
-
-    def __iter__(self) -> Iterator[Frame]:
-        for i in range(len(self)):
-            frame = self._load(i)
-            if frame is not None:
-                yield frame
 
     def groundtruth(self) -> Trajectory | None:
         """groundtruth.txt at its native rate (100 Hz mocap), T_world_cam of the colour camera."""

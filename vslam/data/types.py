@@ -182,9 +182,16 @@ class Sequence(abc.ABC):
     def timestamps(self) -> np.ndarray:
         """(N,) float64 seconds of the listed frames."""
 
-    @abc.abstractmethod
     def __iter__(self) -> Iterator[Frame]:
-        """Frames in time order."""
+        """Frames in time order; a frame whose files do not decode is skipped (``_load`` logs why)."""
+        for i in range(len(self)):
+            frame = self._load(i)
+            if frame is not None:
+                yield frame
+
+    def _load(self, i: int) -> Frame | None:
+        """Frame i decoded, or None when its files do not decode. Readers override this (or ``__iter__``)."""
+        raise NotImplementedError
 
     def groundtruth(self) -> "Trajectory | None":
         """Ground-truth trajectory of cam0 at its native rate, or None."""
