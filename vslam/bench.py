@@ -67,7 +67,7 @@ def _job_render(config: str | None, overrides: dict[str, Any], out_dir: str) -> 
 
     data = load_yaml(config) if config else {}
     data = deep_merge(((data.get("dataset") or {}).get("synthetic") or {}) if "dataset" in data else data, overrides.get("dataset", {}).get("synthetic", {}))
-    seq = SyntheticSequence(from_dict(SyntheticConfig, data, config or "<render>"))
+    seq = SyntheticSequence(from_dict(SyntheticConfig, data, config or "<render>"), sensor="stereo")  # with the right image
     t0 = time.perf_counter()
     n = 0
     for _ in seq:

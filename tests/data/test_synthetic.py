@@ -281,7 +281,7 @@ def test_same_seed_same_bytes_other_seed_other_data() -> None:
 
 
 def test_blackout_frames_are_black() -> None:
-    seq = SyntheticSequence(SyntheticConfig(n_frames=8, blackouts=((3, 2),), **SMALL))
+    seq = SyntheticSequence(SyntheticConfig(n_frames=8, blackouts=((3, 2),), **SMALL), sensor="stereo")
     np.testing.assert_array_equal(seq.blackout_frames(), [3, 4])
     frames = list(seq)
     for f in frames[3:5]:

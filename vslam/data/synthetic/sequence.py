@@ -60,7 +60,8 @@ class SyntheticSequence(Sequence):
 
     cfg: what to generate (``SyntheticConfig()`` when None).
     sensor: what the sequence reports as ``sensor``; frames always carry the
-        colour image, depth and right image, whatever is asked.
+        colour image and depth, and the right image only for "stereo" (it
+        doubles the render time; ``render(i, right=True)`` gives it anyway).
     Frames: BGR uint8 images, depth in metres, ``imu`` = samples in
     (previous frame's t, t] (the first frame: (t0 - one IMU period, t0], as
     the EuRoC reader does), ground-truth T_world_cam of cam0, dynamic mask and
@@ -154,7 +155,8 @@ class SyntheticSequence(Sequence):
         return self._imu.between(t0, self._t[i])
 
     def frame(self, i: int) -> Frame:
-        r = self.render(i)
+        # The right image doubles the render cost: only a stereo sequence pays for it.
+        r = self.render(i, right=self.sensor == "stereo")
         return Frame(
             index=i,
             timestamp=float(self._t[i]),
