@@ -171,12 +171,12 @@ def render_markdown(suite: BenchSuite, results: list[tuple[BenchRow, dict[str, A
         f"Each row: {repeat} run(s) in a fresh process; numbers are medians, ± is max−min over the runs.",
         "Timings are comparable only within this file (same machine, same session).",
         "",
-        "| row | frames (tracked) | ATE RMSE m | align | RPE trans / rot | frames/s | ms/frame | peak RSS MB | deterministic | target |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| row | frames (tracked) | path m | ATE RMSE m | ATE % of path | align | RPE trans / rot | frames/s | ms/frame | peak RSS MB | deterministic | target |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row, r in results:
         if "error" in r:
-            lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | | {row.target} |")
+            lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | | | | {row.target} |")
             continue
         ate = _fmt(r.get("ate_rmse"), ".4f")
         if r.get("ate_rmse_spread") and repeat > 1:
@@ -184,8 +184,10 @@ def render_markdown(suite: BenchSuite, results: list[tuple[BenchRow, dict[str, A
         rpe = "–" if r.get("rpe_t") is None else f"{r['rpe_t']:.4f} m / {r['rpe_r']:.3f}° per {r['rpe_delta']}"
         tracked = f"{r['frames']} ({r['tracked']})" if "tracked" in r else f"{r['frames']}"
         det = ("yes" if r.get("identical") else "**no**") if repeat > 1 and "ate_rmse" in r else "–"
+        path = r.get("path_m")
+        pct = "–" if path is None or r.get("ate_rmse") is None or path <= 0 else f"{100 * r['ate_rmse'] / path:.2f}"
         lines.append(
-            f"| {row.name} | {tracked} | {ate} | {r.get('align', '–')} | {rpe} | {r['fps']:.1f} | {r['ms_per_frame']:.1f} | "
+            f"| {row.name} | {tracked} | {_fmt(path, '.2f')} | {ate} | {pct} | {r.get('align', '–')} | {rpe} | {r['fps']:.1f} | {r['ms_per_frame']:.1f} | "
             f"{r['peak_rss_mb']:.0f} | {det} | {row.target} |"
         )
     notes = [f"- **{row.name}**: {row.note}" for row, _ in results if row.note]

@@ -1,9 +1,10 @@
 """Wires the stages from one config: open a sequence, track every frame,
 write the trajectory as it is produced, then evaluate against ground truth.
 
-The front end today is the frame-to-frame baseline odometry
-(`vslam.tracking.baseline`); the SLAM core replaces it behind the same
-``track(frame) -> FrameEstimate`` call.
+``tracker`` picks the front end: the frame-to-frame baseline odometry
+(`vslam.tracking.baseline`) or the SLAM core (`vslam.tracking.slam`: map,
+local BA), both behind the same ``track(frame) -> FrameEstimate`` and
+``finish(out_dir) -> paths`` calls.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from vslam.errors import ConfigError
 from vslam.eval import EvalConfig, EvalResult, evaluate, write_report
 from vslam.paths import data_root
 from vslam.tracking.baseline import FrameEstimate, FrameToFrameOdometry, OdometryConfig
+from vslam.tracking.slam import SlamConfig, SlamTracker
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +53,9 @@ class OutputConfig:
 @dataclass(frozen=True)
 class PipelineConfig:
     dataset: DatasetConfig = DatasetConfig()
-    odometry: OdometryConfig = OdometryConfig()
+    tracker: Literal["baseline", "slam"] = "baseline"  # baseline: frame-to-frame odometry; slam: map + local BA
+    odometry: OdometryConfig = OdometryConfig()  # settings of the baseline tracker
+    slam: SlamConfig = SlamConfig()  # settings of the SLAM tracker
     eval: EvalConfig = EvalConfig()
     output: OutputConfig = OutputConfig()
 
@@ -95,7 +99,8 @@ def open_dataset(cfg: DatasetConfig) -> Sequence:
     return open_sequence(path, kind=kind, **options)
 
 
-STAT_COLUMNS = ("index", "timestamp", "tracked", "n_features", "n_matches", "n_inliers", "ms_features", "ms_depth", "ms_pose", "ms_total")
+STAT_COLUMNS = ("index", "timestamp", "tracked", "n_features", "n_matches", "n_inliers", "ms_features", "ms_depth", "ms_pose",
+                "ms_mapping", "ms_total")
 
 
 def _fmt_stat(col: str, v: object) -> str:
@@ -124,7 +129,11 @@ class Pipeline:
         paths: dict[str, Path] = {"config": out / "config.yaml"}
         writers = {f: TrajectoryWriter(out / f"trajectory.{f}.txt", f) for f in cfg.output.formats}
         paths.update({f"trajectory_{f}": w.path for f, w in writers.items()})
-        odo = FrameToFrameOdometry(seq.calibration, cfg.dataset.sensor, cfg.odometry)
+        odo: FrameToFrameOdometry | SlamTracker
+        if cfg.tracker == "slam":
+            odo = SlamTracker(seq.calibration, cfg.dataset.sensor, cfg.slam)
+        else:
+            odo = FrameToFrameOdometry(seq.calibration, cfg.dataset.sensor, cfg.odometry)
         n_total = len(seq) if cfg.dataset.max_frames <= 0 else min(len(seq), cfg.dataset.max_frames)
         stamps: list[float] = []
         poses: list[np.ndarray] = []
@@ -160,6 +169,7 @@ class Pipeline:
             for w in writers.values():
                 w.close()
         seconds = time.perf_counter() - t_start
+        paths.update(odo.finish(out))  # keyframes and map (SLAM); nothing for the baseline
         traj = Trajectory(np.array(stamps), np.array(poses).reshape(-1, 4, 4))
         result = RunResult(traj, np.array(tracked, bool), stats, None, paths, seconds)
         gt = seq.groundtruth()

@@ -174,6 +174,10 @@ class FrameToFrameOdometry:
             return None, int(n)
         return inv_T(make_T(R, t.reshape(3))), int(n)  # T_ref_cur with |t| = 1
 
+    def finish(self, out_dir: object) -> dict:
+        """Nothing to write besides the per-frame trajectory (no map): the pipeline's common end-of-run hook."""
+        return {}
+
     def track(self, frame: Frame) -> FrameEstimate:
         t0 = time.perf_counter()
         raw, uv, desc = self._features(frame.image, self.cam)

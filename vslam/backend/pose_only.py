@@ -1,0 +1,162 @@
+"""Pose-only refinement with fixed 3-D points: vectorised numpy Levenberg-Marquardt / IRLS on SE(3).
+
+Scheme of ORB-SLAM2 ``Optimizer::PoseOptimization`` (Mur-Artal & Tardós 2017): ``pose_rounds`` (4) rounds of
+``pose_iterations`` (10) LM iterations; after each round every observation (also the ones left out) is
+classified by the chi2 test on its unrobust whitened error, and only the inliers enter the next round, so
+an outlier whose error falls comes back. The Huber kernel (k = ``huber_k`` sigmas, on the norm of the
+whitened residual like GTSAM's ``Robust`` model) is used in every round but the last, as in ORB-SLAM2.
+
+Parameterisation: T_cam_world is updated on the left, ``T <- [Exp(w) | v] T``, so d p_cam / d(w, v) =
+[-[p_cam]x, I]. Residual rows per observation: (uL, v, uR) - measured, whitened by 1/sigma; the uR row is
+zeroed for a mono observation, which makes one code path for mono and stereo.
+
+Why numpy and not GTSAM (measured by ``python -m tests.backend.bench_ba``, 2-core Xeon, one thread,
+20 % outliers, 3 cm / 2 deg start, 4 rounds): see the numbers in ``vslam/backend/ba.py``'s docstring. A
+GTSAM graph needs one landmark variable per point held by a NonlinearEquality and is rebuilt per round; it
+reaches the same pose (to 1e-9 m) several times slower.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vslam.backend.projection import (
+    MIN_DEPTH,
+    chi2_thresholds,
+    measurement_matrix,
+    transform_points,
+    whitened_sq_errors,
+)
+from vslam.geometry.se3 import inv_T
+
+_BEHIND_PENALTY_PX = 1e3  # whitened error charged to a point behind the camera, so LM never "gains" by it
+_STEP_TOL = 1e-7  # stop when |(w, v)| < this (rad, m): 0.5 um at 5 m, far below any measurable change
+_COST_RTOL = 1e-9  # ... or when the robust cost fell by less than this fraction
+_MIN_OBS = 3  # a pose needs at least 3 points
+
+
+def refine_pose(
+    T_world_cam: np.ndarray,
+    pts_world: np.ndarray,
+    uv: np.ndarray,
+    ur: np.ndarray,
+    camera,
+    cfg,
+    sigma: np.ndarray | float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """See ``vslam.backend.ba.optimize_pose``; ``sigma``: pixel std per observation (None: cfg.pixel_sigma)."""
+    T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
+    pts = np.asarray(pts_world, dtype=np.float64).reshape(-1, 3)
+    meas, stereo = measurement_matrix(uv, ur)
+    n = pts.shape[0]
+    sig = np.broadcast_to(np.asarray(cfg.pixel_sigma if sigma is None else sigma, dtype=np.float64), (n,))
+    valid = np.isfinite(pts).all(axis=1) & np.isfinite(meas[:, :2]).all(axis=1) & (sig > 0)
+    if camera.baseline <= 0:
+        stereo = np.zeros(n, dtype=bool)  # no baseline, no stereo residual
+    inliers = np.zeros(n, dtype=bool)
+    T_cw = inv_T(T_world_cam)
+    P, Z, S, w = pts[valid], meas[valid], stereo[valid], 1.0 / sig[valid]
+    thr = chi2_thresholds(S, cfg.chi2_mono, cfg.chi2_stereo)
+    active = _classify(T_cw, P, Z, S, 1.0 / w, thr, camera)
+    if P.shape[0] < _MIN_OBS:
+        inliers[valid] = active
+        return T_world_cam.copy(), inliers
+    active[:] = True  # round 1 uses every observation, as in ORB-SLAM2
+    for rnd in range(cfg.pose_rounds):
+        if active.sum() < _MIN_OBS:
+            break
+        k = cfg.huber_k if rnd < cfg.pose_rounds - 1 else None
+        T_cw = _levenberg_marquardt(T_cw, P[active], Z[active], S[active], w[active], camera, k, cfg.pose_iterations)
+        active = _classify(T_cw, P, Z, S, 1.0 / w, thr, camera)
+    inliers[valid] = active
+    return inv_T(T_cw), inliers
+
+
+def _classify(T_cw, P, Z, S, sig, thr, camera) -> np.ndarray:
+    chi2, _ = whitened_sq_errors(transform_points(T_cw, P), Z, S, sig, camera)
+    return chi2 <= thr
+
+
+def _levenberg_marquardt(T_cw, P, Z, S, w, camera, huber_k, iterations) -> np.ndarray:
+    """LM on the robust cost; (4,4) T_cam_world in -> refined T_cam_world out."""
+    R, t = T_cw[:3, :3].copy(), T_cw[:3, 3].copy()
+    PT = np.ascontiguousarray(P.T)  # (3,n): row-wise vector maths below is contiguous
+    ZT = np.ascontiguousarray(Z.T)
+    Sf = S.astype(np.float64)
+    cost, H, g = _linearize(R, t, PT, ZT, Sf, w, camera, huber_k)
+    lam = 1e-5
+    for _ in range(iterations):
+        Hd = H + lam * np.diag(np.diag(H) + 1e-9)
+        try:
+            delta = -np.linalg.solve(Hd, g)
+        except np.linalg.LinAlgError:
+            break
+        if np.linalg.norm(delta) < _STEP_TOL:
+            break  # converged: the step would change nothing measurable
+        dR = _so3_exp(delta[:3])
+        R_new, t_new = dR @ R, dR @ t + delta[3:]
+        cost_new, H_new, g_new = _linearize(R_new, t_new, PT, ZT, Sf, w, camera, huber_k)
+        if cost_new <= cost:
+            small = cost - cost_new <= _COST_RTOL * cost
+            R, t, cost, H, g = R_new, t_new, cost_new, H_new, g_new
+            lam = max(lam * 0.1, 1e-9)
+            if small:
+                break
+        else:
+            lam *= 10.0
+            if lam > 1e8:
+                break
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+def _linearize(R, t, PT, ZT, S, w, camera, huber_k):
+    """Robust cost, Gauss-Newton H = sum wi J^T J (6,6) and g = sum wi J^T r (6,) at T_cam_world = [R | t].
+
+    PT: (3,n) world points; ZT: (3,n) measured uL, v, uR; S: (n,) 1.0 stereo / 0.0 mono; w: (n,) 1/sigma.
+    Jacobian rows (standard pinhole form, xn = X/Z, yn = Y/Z, xb = (X - b)/Z, iz = 1/Z) w.r.t. (w, v):
+    uL: fx [-xn yn, 1 + xn^2, -yn, iz, 0, -xn iz];  v: fy [-(1 + yn^2), xn yn, xn, 0, iz, -yn iz];
+    uR: fx [-xb yn, 1 + xb xn, -yn, iz, 0, -xb iz].
+    """
+    fx, fy = camera.fx, camera.fy
+    pc = R @ PT + t[:, None]
+    Zc = pc[2]
+    front = Zc > MIN_DEPTH
+    iz = 1.0 / np.where(front, Zc, 1.0)
+    xn, yn = pc[0] * iz, pc[1] * iz
+    xb = xn - camera.baseline * iz
+    ru = (fx * xn + camera.cx - ZT[0]) * w
+    rv = (fy * yn + camera.cy - ZT[1]) * w
+    rr = (fx * xb + camera.cx - ZT[2]) * (w * S)
+    e2 = ru * ru + rv * rv + rr * rr
+    e2 = np.where(front, e2, _BEHIND_PENALTY_PX**2)
+    if huber_k is None:
+        sw = front.astype(np.float64)
+        cost = 0.5 * float(e2.sum())
+    else:
+        e = np.sqrt(e2)
+        big = e > huber_k
+        sw = np.sqrt(np.where(big, huber_k / np.where(big, e, 1.0), 1.0)) * front  # sqrt of the IRLS weight
+        cost = float(np.sum(np.where(big, huber_k * (e - 0.5 * huber_k), 0.5 * e2)))
+    n = PT.shape[1]
+    a, b = fx * w * sw, fy * w * sw
+    c = a * S
+    J = np.empty((6, 3, n))
+    xy = xn * yn
+    J[0, 0], J[1, 0], J[2, 0], J[3, 0], J[4, 0], J[5, 0] = -a * xy, a * (1.0 + xn * xn), -a * yn, a * iz, 0.0, -a * xn * iz
+    J[0, 1], J[1, 1], J[2, 1], J[3, 1], J[4, 1], J[5, 1] = -b * (1.0 + yn * yn), b * xy, b * xn, 0.0, b * iz, -b * yn * iz
+    J[0, 2], J[1, 2], J[2, 2], J[3, 2], J[4, 2], J[5, 2] = -c * xb * yn, c * (1.0 + xb * xn), -c * yn, c * iz, 0.0, -c * xb * iz
+    J = J.reshape(6, 3 * n)
+    r = np.concatenate([ru * sw, rv * sw, rr * sw])
+    return cost, J @ J.T, J @ r
+
+
+def _so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: (3,) rotation vector (rad) -> (3,3); a hand-rolled scipy-free version (called every iteration)."""
+    th2 = float(w @ w)
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if th2 < 1e-16:
+        return np.eye(3) + K + 0.5 * K @ K
+    th = np.sqrt(th2)
+    return np.eye(3) + (np.sin(th) / th) * K + ((1.0 - np.cos(th)) / th2) * K @ K

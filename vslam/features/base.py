@@ -1,0 +1,71 @@
+"""The keypoint-extractor plug-in interface: ``Features`` and the ``Extractor`` protocol.
+
+Every extractor (ORB today, the learned ConvPoint later) returns the same
+``Features`` so that matching, tracking and mapping never look at which one
+produced them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import numpy as np
+
+from vslam.data.types import PinholeCamera
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    """Front-end settings. ``grid_*``: bucketing cells so texture-rich corners do not take every keypoint."""
+
+    extractor: str = "orb"  # key of EXTRACTORS
+    n_features: int = 1500
+    scale_factor: float = 1.2  # image pyramid step between octaves
+    n_levels: int = 8
+    fast_threshold: int = 12  # FAST corner threshold (OpenCV's default 20 starves low-contrast images)
+    oversample: float = 3.0  # detect this many times n_features, then bucket
+    grid_cols: int = 16
+    grid_rows: int = 12
+
+
+@dataclass
+class Features:
+    """Keypoints of one image.
+
+    raw: (N,2) float64 pixels as detected (distorted image).
+    uv: (N,2) float64 ideal (undistorted) pixels of the same K.
+    desc: (N,D) descriptors (uint8 bits for binary, float32 for learned).
+    octave: (N,) int pyramid level; response: (N,) float detector score.
+    scale_factor: pyramid step, so level l has scale ``scale_factor**l``.
+    """
+
+    raw: np.ndarray
+    uv: np.ndarray
+    desc: np.ndarray
+    octave: np.ndarray
+    response: np.ndarray
+    scale_factor: float = 1.2
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+    @staticmethod
+    def empty(dim: int = 32, dtype: type = np.uint8, scale_factor: float = 1.2) -> Features:
+        z2 = np.zeros((0, 2))
+        return Features(z2, z2.copy(), np.zeros((0, dim), dtype), np.zeros(0, np.int64), np.zeros(0), scale_factor)
+
+    def level_scale(self) -> np.ndarray:
+        """(N,) pixel scale of each keypoint's octave (1 at full resolution)."""
+        return self.scale_factor ** self.octave.astype(np.float64)
+
+    def subset(self, idx: np.ndarray) -> Features:
+        return Features(self.raw[idx], self.uv[idx], self.desc[idx], self.octave[idx], self.response[idx], self.scale_factor)
+
+
+class Extractor(Protocol):
+    """detect(image, camera) -> Features. ``descriptor_kind`` tells matching which distance to use."""
+
+    descriptor_kind: Literal["binary", "float"]
+
+    def detect(self, image: np.ndarray, camera: PinholeCamera, mask: np.ndarray | None = None) -> Features: ...

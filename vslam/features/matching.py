@@ -1,0 +1,100 @@
+"""Descriptor matching: mutual nearest neighbours with a ratio test, and
+projection-guided matching of map points into a frame.
+
+Binary descriptors use Hamming distance (bits), float descriptors L2.
+Everything is vectorised; ties are broken by index so results are deterministic.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.int32)
+
+
+def hamming_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise Hamming distance of (M,D) uint8 descriptor pairs -> (M,) int bits."""
+    return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=1)
+
+
+def descriptor_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise distance of paired descriptors: Hamming for uint8, L2 for float."""
+    if a.dtype == np.uint8:
+        return hamming_rows(a, b)
+    return np.linalg.norm(a.astype(np.float32) - b.astype(np.float32), axis=1)
+
+
+def match_mutual(d1: np.ndarray, d2: np.ndarray, ratio: float = 0.8, max_dist: float = np.inf) -> np.ndarray:
+    """(M,2) index pairs (i in d1, j in d2): mutual nearest neighbours passing Lowe's ratio test."""
+    if len(d1) < 2 or len(d2) < 2:
+        return np.zeros((0, 2), np.int64)
+    norm = cv2.NORM_HAMMING if d1.dtype == np.uint8 else cv2.NORM_L2
+    bf = cv2.BFMatcher(norm)
+    fwd = bf.knnMatch(d1, d2, k=2)
+    bwd = np.full(len(d2), -1, np.int64)
+    for m in bf.knnMatch(d2, d1, k=1):
+        if m:
+            bwd[m[0].queryIdx] = m[0].trainIdx
+    pairs = [
+        (m[0].queryIdx, m[0].trainIdx) for m in fwd
+        if len(m) == 2 and m[0].distance < ratio * m[1].distance and m[0].distance <= max_dist
+        and bwd[m[0].trainIdx] == m[0].queryIdx
+    ]
+    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+
+
+def match_by_projection(
+    pred_uv: np.ndarray,
+    pt_desc: np.ndarray,
+    kp_uv: np.ndarray,
+    kp_desc: np.ndarray,
+    radius: float | np.ndarray,
+    max_dist: float = 64,
+    ratio: float = 0.9,
+    kp_tree: cKDTree | None = None,
+    max_candidates: int = 16,
+) -> np.ndarray:
+    """Guided matching: for each predicted map-point pixel the best keypoint within ``radius``.
+
+    pred_uv: (P,2) predicted ideal pixels of map points; pt_desc: (P,D) their descriptors.
+    kp_uv: (N,2) ideal pixels of the frame's keypoints; kp_desc: (N,D).
+    radius: pixels, scalar or (P,) (wider for coarse octaves / uncertain predictions).
+    Returns (M,2) pairs (point index, keypoint index); each keypoint used at most once
+    (the closest descriptor wins), best distance <= max_dist and < ratio x second best.
+    Only the ``max_candidates`` keypoints nearest to the prediction are compared (a fixed-size,
+    fully vectorised k-d tree query).
+    """
+    empty = np.zeros((0, 2), np.int64)
+    if len(pred_uv) == 0 or len(kp_uv) == 0:
+        return empty
+    tree = kp_tree if kp_tree is not None else cKDTree(kp_uv)
+    r = np.broadcast_to(np.asarray(radius, dtype=np.float64), (len(pred_uv),))
+    k = min(max_candidates, len(kp_uv))
+    d, ki = tree.query(pred_uv, k=k, distance_upper_bound=float(r.max()))
+    d, ki = d.reshape(len(pred_uv), k), ki.reshape(len(pred_uv), k)
+    valid = np.isfinite(d) & (d <= r[:, None])
+    if not valid.any():
+        return empty
+    pi = np.nonzero(valid)[0]
+    ki = ki[valid].astype(np.int64)
+    dist = descriptor_rows(pt_desc[pi], kp_desc[ki]).astype(np.float64)
+    # best and second best per point
+    order = np.lexsort((ki, dist, pi))
+    pi, ki, dist = pi[order], ki[order], dist[order]
+    first = np.r_[True, pi[1:] != pi[:-1]]
+    second = np.r_[False, first[:-1]] & ~first
+    best_p, best_k, best_d = pi[first], ki[first], dist[first]
+    sec_d = np.full(len(pred_uv), np.inf)
+    sec_d[pi[second]] = dist[second]
+    ok = (best_d <= max_dist) & (best_d < ratio * sec_d[best_p])
+    best_p, best_k, best_d = best_p[ok], best_k[ok], best_d[ok]
+    if len(best_p) == 0:
+        return empty
+    # one point per keypoint: the smallest distance keeps it
+    order = np.lexsort((best_p, best_d, best_k))
+    best_p, best_k = best_p[order], best_k[order]
+    keep = np.r_[True, best_k[1:] != best_k[:-1]]
+    out = np.stack([best_p[keep], best_k[keep]], axis=1)
+    return out[np.argsort(out[:, 0], kind="stable")]

@@ -1,0 +1,209 @@
+"""Local mapping, run synchronously right after each new keyframe (ORB-SLAM's LocalMapping).
+
+Steps: attach the tracked observations, create new points (RGB-D/stereo:
+back-project keypoints with depth; monocular: triangulate unmatched keypoint
+pairs with covisible keyframes), fuse duplicates with the neighbours, cull
+weak recent points, then local bundle adjustment over the most covisible
+keyframes with the others that see those points held fixed.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from vslam.backend.ba import BackendConfig, BAProblem, StereoCamera, local_bundle_adjustment
+from vslam.data.types import PinholeCamera, SensorKind
+from vslam.features.matching import match_by_projection, match_mutual
+from vslam.geometry.triangulation import triangulate_points
+from vslam.mapping.map import KeyFrame, Map
+from vslam.tracking.tracker import project
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class MappingConfig:
+    ba_window: int = 8  # keyframes optimised by local BA (the new one + its most covisible)
+    ba_max_fixed: int = 16  # at most this many fixed keyframes (most observations first)
+    ba: bool = True
+    min_shared: int = 15  # covisibility edge: keyframes sharing at least this many points
+    cull_found_ratio: float = 0.25  # recent point found/visible below this -> removed
+    cull_min_obs_mono: int = 2  # recent point seen by fewer keyframes after cull_age -> removed
+    cull_min_obs_depth: int = 3
+    cull_age: int = 2  # keyframes after creation when the observation count is checked
+    fuse_neighbors: int = 6  # fuse new points into this many covisible keyframes (and back)
+    fuse_radius_px: float = 3.0
+    max_hamming: int = 50
+    triangulate: Literal["mono", "all", "none"] = "mono"  # which sensors create points by two-view triangulation
+    tri_neighbors: int = 8
+    tri_parallax_deg: float = 1.0
+    tri_max_reproj_px: float = 2.0
+    max_new_points: int = 1000  # RGB-D/stereo points created per keyframe, closest first
+
+
+class LocalMapper:
+    """Owns nothing but the map reference and settings; ``process(kf)`` mutates the map."""
+
+    def __init__(self, slam_map: Map, cam: PinholeCamera, stereo_cam: StereoCamera, sensor: SensorKind,
+                 cfg: MappingConfig, backend: BackendConfig):
+        self.map, self.cam, self.stereo_cam, self.sensor, self.cfg, self.backend = slam_map, cam, stereo_cam, sensor, cfg, backend
+        self.recent: list[int] = []  # point ids still on probation (culling)
+
+    def process(self, kf: KeyFrame, tracked_ids: np.ndarray) -> dict[str, float]:
+        """Insert keyframe ``kf`` whose keypoints matched ``tracked_ids`` (N,) (-1 none). -> ms per step."""
+        ms: dict[str, float] = {}
+        t = time.perf_counter()
+        for kp in np.flatnonzero(tracked_ids >= 0):
+            pid = int(tracked_ids[kp])
+            if pid in self.map.points:
+                self.map.add_observation(pid, kf.id, int(kp))
+        neighbors = self.map.covisible_keyframes(kf.id, 1, max(self.cfg.fuse_neighbors, self.cfg.tri_neighbors))
+        new = self.create_depth_points(kf) if self.sensor != "mono" else []
+        if self.cfg.triangulate == "all" or (self.cfg.triangulate == "mono" and self.sensor == "mono"):
+            new += self.triangulate(kf, neighbors[: self.cfg.tri_neighbors])
+        self.recent.extend(new)
+        ms["create"] = (time.perf_counter() - t) * 1e3
+        t = time.perf_counter()
+        self.fuse(kf, neighbors[: self.cfg.fuse_neighbors])
+        for pid in np.unique(kf.point_ids[kf.point_ids >= 0]):
+            self.map.update_descriptor(int(pid))
+        self.cull(kf.id)
+        ms["fuse_cull"] = (time.perf_counter() - t) * 1e3
+        t = time.perf_counter()
+        if self.cfg.ba and len(self.map.keyframes) >= 2:
+            self.bundle_adjust(kf.id)
+        ms["ba"] = (time.perf_counter() - t) * 1e3
+        return ms
+
+    # -- point creation --------------------------------------------------------
+    def create_depth_points(self, kf: KeyFrame) -> list[int]:
+        """Back-project keypoints with depth that are not yet map points (closest first, at most max_new_points)."""
+        free = np.flatnonzero((kf.point_ids < 0) & np.isfinite(kf.depth))
+        free = free[np.argsort(kf.depth[free], kind="stable")][: self.cfg.max_new_points]
+        if len(free) == 0:
+            return []
+        Xc = self.cam.backproject(kf.features.uv[free], kf.depth[free])
+        Xw = Xc @ kf.T_world_cam[:3, :3].T + kf.T_world_cam[:3, 3]
+        return [self.map.add_point(Xw[i], kf.id, int(kp)).id for i, kp in enumerate(free)]
+
+    def triangulate(self, kf: KeyFrame, neighbors: list[int]) -> list[int]:
+        """New points from descriptor matches of unmatched keypoints between ``kf`` and each neighbour."""
+        new: list[int] = []
+        for nb_id in neighbors:
+            nb = self.map.keyframes[nb_id]
+            a = np.flatnonzero(kf.point_ids < 0)
+            b = np.flatnonzero(nb.point_ids < 0)
+            if len(a) < 8 or len(b) < 8:
+                continue
+            m = match_mutual(kf.features.desc[a], nb.features.desc[b], ratio=0.75, max_dist=self.cfg.max_hamming)
+            if len(m) == 0:
+                continue
+            ia, ib = a[m[:, 0]], b[m[:, 1]]
+            X, ok = triangulate_points(kf.T_world_cam, nb.T_world_cam, kf.features.uv[ia], nb.features.uv[ib], self.cam.K,
+                                       self.cfg.tri_parallax_deg, self.cfg.tri_max_reproj_px)
+            for j in np.flatnonzero(ok):
+                mp = self.map.add_point(X[j], kf.id, int(ia[j]))
+                self.map.add_observation(mp.id, nb_id, int(ib[j]))
+                new.append(mp.id)
+        return new
+
+    # -- fusion and culling ----------------------------------------------------
+    def _fuse_into(self, target: KeyFrame, pids: np.ndarray) -> int:
+        """Project ``pids`` into ``target``; attach to free keypoints, merge with duplicates. -> fusions."""
+        pids = np.array([p for p in pids if p in self.map.points and target.id not in self.map.points[p].observations], np.int64)
+        if len(pids) == 0 or len(target.features) == 0:
+            return 0
+        uv, z, vis = project(target.T_world_cam, self.map.points_xyz(pids), self.cam)
+        idx = np.flatnonzero(vis)
+        if len(idx) == 0:
+            return 0
+        pairs = match_by_projection(uv[idx], self.map.descriptors(pids[idx]), target.features.uv, target.features.desc,
+                                    self.cfg.fuse_radius_px, self.cfg.max_hamming, 1.0)
+        n = 0
+        for pi, kp in pairs:
+            pid = int(pids[idx[pi]])
+            zk = target.depth[kp]
+            if np.isfinite(zk) and abs(zk - z[idx[pi]]) > 0.1 * zk:  # depth disagrees: a different surface
+                continue
+            if pid not in self.map.points or target.id in self.map.points[pid].observations:
+                continue
+            old = int(target.point_ids[kp])
+            if old < 0:
+                self.map.add_observation(pid, target.id, int(kp))
+            else:
+                keep, drop = (old, pid) if len(self.map.points[old].observations) >= len(self.map.points[pid].observations) else (pid, old)
+                self.map.merge_points(keep, drop)
+            n += 1
+        return n
+
+    def fuse(self, kf: KeyFrame, neighbors: list[int]) -> None:
+        mine = kf.point_ids[kf.point_ids >= 0]
+        for nb_id in neighbors:
+            self._fuse_into(self.map.keyframes[nb_id], mine)
+            mine = kf.point_ids[kf.point_ids >= 0]
+        theirs = [self.map.keyframes[n].point_ids for n in neighbors]
+        if theirs:
+            cand = np.unique(np.concatenate(theirs))
+            self._fuse_into(kf, cand[cand >= 0])
+
+    def cull(self, cur_kf: int) -> None:
+        """ORB-SLAM MapPointCulling on points created in the last few keyframes."""
+        min_obs = self.cfg.cull_min_obs_mono if self.sensor == "mono" else self.cfg.cull_min_obs_depth
+        keep: list[int] = []
+        for pid in self.recent:
+            mp = self.map.points.get(pid)
+            if mp is None:
+                continue
+            age = cur_kf - mp.first_kf
+            if mp.found_ratio < self.cfg.cull_found_ratio or (age >= self.cfg.cull_age and len(mp.observations) < min_obs):
+                self.map.remove_point(pid)
+            elif age < self.cfg.cull_age + 1:
+                keep.append(pid)
+        self.recent = keep
+
+    # -- local bundle adjustment -----------------------------------------------
+    def bundle_adjust(self, kf_id: int) -> None:
+        m = self.map
+        window = [kf_id] + m.covisible_keyframes(kf_id, self.cfg.min_shared, self.cfg.ba_window - 1)
+        pts = np.unique(np.concatenate([m.keyframes[k].point_ids for k in window]))
+        pts = pts[pts >= 0]
+        if len(pts) == 0:
+            return
+        fixed_counts: dict[int, int] = {}
+        for pid in pts:
+            for k in m.points[int(pid)].observations:
+                if k not in window:
+                    fixed_counts[k] = fixed_counts.get(k, 0) + 1
+        fixed = sorted(fixed_counts, key=lambda k: (-fixed_counts[k], k))[: self.cfg.ba_max_fixed]
+        first = min(m.keyframes)
+        if first in window:  # the first keyframe anchors the gauge (and, monocular, helps hold the scale)
+            window.remove(first)
+            fixed.append(first)
+        if not fixed:
+            fixed = [window.pop()]
+        if not window:
+            return
+        allk = set(window) | set(fixed)
+        okf, opt, ouv, our = [], [], [], []
+        for pid in pts:
+            for k, kp in m.points[int(pid)].observations.items():
+                if k in allk:
+                    kf = m.keyframes[k]
+                    okf.append(k), opt.append(int(pid)), ouv.append(kf.features.uv[kp]), our.append(kf.ur[kp])
+        problem = BAProblem({k: m.keyframes[k].T_world_cam for k in sorted(allk)}, set(fixed),
+                            {int(p): m.points[int(p)].xyz for p in pts}, np.array(okf), np.array(opt),
+                            np.array(ouv).reshape(-1, 2), np.array(our, dtype=np.float64))
+        res = local_bundle_adjustment(problem, self.stereo_cam, self.backend)
+        for k, T in res.poses.items():
+            if k not in fixed:
+                m.keyframes[k].T_world_cam = np.asarray(T, dtype=np.float64)
+        for p, X in res.points.items():
+            if p in m.points:
+                m.points[p].xyz = np.asarray(X, dtype=np.float64)
+        for i in np.flatnonzero(~np.asarray(res.inliers, bool)):
+            m.remove_observation(int(opt[i]), int(okf[i]))

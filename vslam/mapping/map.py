@@ -1,0 +1,180 @@
+"""The map: keyframes, map points and the covisibility between keyframes.
+
+One ``Map`` object, used single-threaded. Ids increase from 0 and dicts keep
+insertion order, so every iteration (and therefore every run) is deterministic.
+Covisibility is derived from point observations on demand rather than cached:
+keyframes have a few hundred points, so counting is cheap and never stale.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vslam.features.base import Features
+from vslam.features.matching import descriptor_rows
+
+
+@dataclass
+class KeyFrame:
+    """A frame kept in the map.
+
+    T_world_cam: (4,4) pose of cam0. features: its keypoints. depth: (N,) metres (NaN unknown);
+    ur: (N,) virtual right x in pixels (NaN for monocular measurements);
+    point_ids: (N,) int64 map-point id observed by each keypoint, -1 for none.
+    """
+
+    id: int
+    frame_index: int
+    timestamp: float
+    T_world_cam: np.ndarray
+    features: Features
+    depth: np.ndarray
+    ur: np.ndarray
+    point_ids: np.ndarray
+
+    @property
+    def n_points(self) -> int:
+        return int(np.count_nonzero(self.point_ids >= 0))
+
+
+@dataclass
+class MapPoint:
+    """A 3-D point: xyz (3,) world metres; descriptor (D,) representative of its observations;
+    observations {kf_id: keypoint index}; n_visible / n_found: times it projected into a tracked
+    frame / was matched there (their ratio drives culling); first_kf: keyframe that created it."""
+
+    id: int
+    xyz: np.ndarray
+    descriptor: np.ndarray
+    first_kf: int
+    observations: dict[int, int] = field(default_factory=dict)
+    n_visible: int = 1
+    n_found: int = 1
+
+    @property
+    def found_ratio(self) -> float:
+        return self.n_found / max(self.n_visible, 1)
+
+
+class Map:
+    """Keyframes and map points with consistent two-way bookkeeping of observations."""
+
+    def __init__(self) -> None:
+        self.keyframes: dict[int, KeyFrame] = {}
+        self.points: dict[int, MapPoint] = {}
+        self._next_kf = 0
+        self._next_pt = 0
+
+    # -- creation / removal ------------------------------------------------
+    def add_keyframe(self, frame_index: int, timestamp: float, T_world_cam: np.ndarray, features: Features,
+                     depth: np.ndarray, ur: np.ndarray) -> KeyFrame:
+        kf = KeyFrame(self._next_kf, frame_index, timestamp, np.array(T_world_cam, dtype=np.float64), features,
+                      depth, ur, np.full(len(features), -1, np.int64))
+        self.keyframes[kf.id] = kf
+        self._next_kf += 1
+        return kf
+
+    def add_point(self, xyz: np.ndarray, kf_id: int, kp_idx: int) -> MapPoint:
+        """A new point first seen by keyframe ``kf_id`` at keypoint ``kp_idx``."""
+        kf = self.keyframes[kf_id]
+        mp = MapPoint(self._next_pt, np.array(xyz, dtype=np.float64), kf.features.desc[kp_idx].copy(), kf_id)
+        self.points[mp.id] = mp
+        self._next_pt += 1
+        self.add_observation(mp.id, kf_id, kp_idx)
+        return mp
+
+    def add_observation(self, pt_id: int, kf_id: int, kp_idx: int) -> None:
+        kf, mp = self.keyframes[kf_id], self.points[pt_id]
+        old = int(kf.point_ids[kp_idx])
+        if old >= 0 and old != pt_id:
+            self.remove_observation(old, kf_id)
+        if kf_id in mp.observations and mp.observations[kf_id] != kp_idx:  # one keypoint per point per keyframe
+            kf.point_ids[mp.observations[kf_id]] = -1
+        mp.observations[kf_id] = int(kp_idx)
+        kf.point_ids[kp_idx] = pt_id
+
+    def remove_observation(self, pt_id: int, kf_id: int) -> None:
+        """Drop one observation; a point left with none is removed."""
+        mp = self.points.get(pt_id)
+        if mp is None or kf_id not in mp.observations:
+            return
+        kp = mp.observations.pop(kf_id)
+        kf = self.keyframes[kf_id]
+        if kf.point_ids[kp] == pt_id:
+            kf.point_ids[kp] = -1
+        if not mp.observations:
+            del self.points[pt_id]
+
+    def remove_point(self, pt_id: int) -> None:
+        mp = self.points.pop(pt_id, None)
+        if mp is None:
+            return
+        for kf_id, kp in mp.observations.items():
+            kf = self.keyframes[kf_id]
+            if kf.point_ids[kp] == pt_id:
+                kf.point_ids[kp] = -1
+
+    def merge_points(self, keep: int, drop: int) -> None:
+        """Fuse duplicate ``drop`` into ``keep`` (observations move unless keep is already seen by that keyframe)."""
+        if keep == drop or keep not in self.points or drop not in self.points:
+            return
+        mp_drop = self.points[drop]
+        obs = list(mp_drop.observations.items())
+        self.remove_point(drop)
+        mk = self.points[keep]
+        for kf_id, kp in obs:
+            if kf_id not in mk.observations and self.keyframes[kf_id].point_ids[kp] < 0:
+                self.add_observation(keep, kf_id, kp)
+        mk.n_visible += mp_drop.n_visible
+        mk.n_found += mp_drop.n_found
+
+    # -- queries -------------------------------------------------------------
+    def covisibility(self, kf_id: int) -> dict[int, int]:
+        """{other keyframe id: number of map points it shares with ``kf_id``}, ordered by id."""
+        counts: dict[int, int] = {}
+        kf = self.keyframes[kf_id]
+        for pid in kf.point_ids[kf.point_ids >= 0]:
+            for other in self.points[int(pid)].observations:
+                if other != kf_id:
+                    counts[other] = counts.get(other, 0) + 1
+        return dict(sorted(counts.items()))
+
+    def covisible_keyframes(self, kf_id: int, min_shared: int = 15, limit: int | None = None) -> list[int]:
+        """Keyframes sharing >= min_shared points with ``kf_id``, most shared first (ties: newest first)."""
+        cov = [(n, k) for k, n in self.covisibility(kf_id).items() if n >= min_shared]
+        cov.sort(key=lambda nk: (-nk[0], -nk[1]))
+        ids = [k for _, k in cov]
+        return ids if limit is None else ids[:limit]
+
+    def local_map(self, kf_id: int, max_keyframes: int = 20, min_shared: int = 15) -> tuple[list[int], np.ndarray]:
+        """(keyframe ids: ``kf_id`` + its most covisible, point ids they observe (sorted, unique))."""
+        kfs = [kf_id] + self.covisible_keyframes(kf_id, min_shared, max_keyframes - 1)
+        pids = [self.keyframes[k].point_ids for k in kfs]
+        allp = np.unique(np.concatenate(pids)) if pids else np.zeros(0, np.int64)
+        return kfs, allp[allp >= 0]
+
+    def points_xyz(self, ids: np.ndarray) -> np.ndarray:
+        """(len(ids),3) world positions."""
+        if len(ids) == 0:
+            return np.zeros((0, 3))
+        return np.stack([self.points[int(i)].xyz for i in ids])
+
+    def descriptors(self, ids: np.ndarray) -> np.ndarray:
+        return np.stack([self.points[int(i)].descriptor for i in ids])
+
+    def update_descriptor(self, pt_id: int) -> None:
+        """Representative descriptor: the observation with the smallest median distance to the others (ORB-SLAM)."""
+        mp = self.points[pt_id]
+        if len(mp.observations) < 3:
+            return
+        D = np.stack([self.keyframes[k].features.desc[i] for k, i in mp.observations.items()])
+        n = len(D)
+        a, b = np.repeat(np.arange(n), n), np.tile(np.arange(n), n)
+        dist = descriptor_rows(D[a], D[b]).reshape(n, n)
+        mp.descriptor = D[int(np.argmin(np.median(dist, axis=1)))].copy()
+
+    def stats(self) -> dict[str, int]:
+        n_obs = sum(len(p.observations) for p in self.points.values())
+        return {"keyframes": len(self.keyframes), "points": len(self.points), "observations": n_obs}

@@ -1,0 +1,203 @@
+"""Tracking: one frame -> its pose against the map, and the keyframe decision.
+
+Per frame (ORB-SLAM's Tracking, single-threaded): project the local map with
+the constant-velocity prediction, match by projection, estimate a robust
+absolute pose (pycolmap LO-RANSAC with a fixed seed), refine pose-only with the
+back end (stereo-like residuals where depth is known), then re-project the
+local map with the refined pose for a second, tighter round. When projection
+finds too few matches the frame is matched by descriptors against the
+reference keyframe (and, after a loss, against the last few keyframes).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+from scipy.spatial import cKDTree
+
+from vslam.backend.ba import BackendConfig, StereoCamera, optimize_pose
+from vslam.data.types import PinholeCamera, SensorKind
+from vslam.features.base import Features
+from vslam.features.matching import match_by_projection, match_mutual
+from vslam.geometry.se3 import inv_T, make_T
+from vslam.mapping.map import Map
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    min_depth: float = 0.1  # metres; keypoint depth outside [min, max] is unknown
+    max_depth: float = 10.0
+    stereo_max_px: float = 1.5  # left-right match must reproject this close in both views
+    radius_px: float = 15.0  # projection search radius from the motion prediction, pixels
+    radius_lost_px: float = 40.0  # ... right after frames that were not tracked
+    radius_refine_px: float = 4.0  # second round, from the refined pose
+    max_hamming: int = 64  # bits (of 256)
+    ratio: float = 0.9  # best / second best descriptor distance within the radius
+    min_matches: int = 30  # fewer projection matches -> descriptor matching against keyframes
+    min_inliers: int = 20  # fewer inliers -> the frame is lost (pose predicted, tracked=False)
+    ransac_px: float = 3.0
+    local_keyframes: int = 20  # reference keyframe + its most covisible ones form the local map
+    reloc_keyframes: int = 10  # relocalisation tries the newest N keyframes
+    kf_ratio: float = 0.75  # RGB-D/stereo: keyframe when inliers < kf_ratio x tracked points of the reference keyframe
+    kf_ratio_mono: float = 0.9  # monocular (ORB-SLAM's thRefRatio values)
+    kf_max_frames: int = 30  # ... or this many frames since the last one
+    kf_close_tracked: int = 100  # RGB-D/stereo: ... or fewer close points tracked than this
+    kf_close_untracked: int = 70  # ... while this many close keypoints are not in the map
+    close_baselines: float = 40.0  # "close" = depth < close_baselines x baseline (ORB-SLAM thDepth)
+    min_depth_points: int = 50  # RGB-D/stereo: keypoints with depth needed to start the map / make a keyframe
+    seed: int = 0
+
+
+@dataclass
+class TrackResult:
+    """Outcome for one frame: T_world_cam (4,4); point_ids (N,) map point per keypoint (inliers only, -1 else)."""
+
+    T_world_cam: np.ndarray
+    ok: bool
+    point_ids: np.ndarray
+    n_matches: int = 0
+    n_inliers: int = 0
+    method: str = ""
+
+
+def project(T_world_cam: np.ndarray, X: np.ndarray, cam: PinholeCamera, min_depth: float = 1e-3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World points (P,3) -> ideal pixels (P,2), depth (P,), mask in front of the camera and inside the image."""
+    T = inv_T(T_world_cam)
+    Xc = X @ T[:3, :3].T + T[:3, 3]
+    z = Xc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.stack([cam.fx * Xc[:, 0] / z + cam.cx, cam.fy * Xc[:, 1] / z + cam.cy], axis=1)
+    ok = (z > min_depth) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height - 1)
+    return uv, z, ok
+
+
+def need_keyframe(n_inliers: int, ref_tracked: int, frames_since: int, n_close_tracked: int, n_close_untracked: int,
+                  sensor: SensorKind, cfg: TrackingConfig) -> bool:
+    """ORB-SLAM's rule (Tracking::NeedNewKeyFrame, local mapping always idle here): insert when
+    the tracked points fall below kf_ratio of the reference keyframe's, when RGB-D/stereo runs short of
+    close tracked points while many close ones are unmapped, or when kf_max_frames have passed."""
+    close_short = sensor != "mono" and n_close_tracked < cfg.kf_close_tracked and n_close_untracked > cfg.kf_close_untracked
+    ratio = cfg.kf_ratio_mono if sensor == "mono" else cfg.kf_ratio
+    weak = n_inliers < ratio * ref_tracked or close_short
+    return bool((weak and n_inliers > 15) or (frames_since >= cfg.kf_max_frames and n_inliers >= cfg.min_inliers))
+
+
+class Tracker:
+    """Pose of a frame against ``slam_map``; holds no state besides the map and cameras."""
+
+    def __init__(self, slam_map: Map, cam: PinholeCamera, stereo_cam: StereoCamera, cfg: TrackingConfig,
+                 backend: BackendConfig):
+        self.map, self.cam, self.stereo_cam, self.cfg, self.backend = slam_map, cam, stereo_cam, cfg, backend
+        self.pycam = pycolmap.Camera(model="PINHOLE", width=cam.width, height=cam.height, params=[cam.fx, cam.fy, cam.cx, cam.cy])
+        self.ao = pycolmap.AbsolutePoseEstimationOptions()
+        self.ao.ransac.max_error = cfg.ransac_px
+        self.ao.ransac.random_seed = cfg.seed
+        self.ao.ransac.min_num_trials = 30
+        self.ao.ransac.max_num_trials = 1000
+
+    # -- building blocks ------------------------------------------------------
+    def pnp(self, uv: np.ndarray, X: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+        """RANSAC absolute pose from ideal pixels (M,2) and world points (M,3) -> (T_world_cam | None, inliers (M,))."""
+        if len(uv) < max(6, self.cfg.min_inliers):
+            return None, np.zeros(len(uv), bool)
+        res = pycolmap.estimate_and_refine_absolute_pose(uv.astype(np.float64), X.astype(np.float64), self.pycam, self.ao)
+        if res is None or res["num_inliers"] < self.cfg.min_inliers:
+            return None, np.zeros(len(uv), bool)
+        M = res["cam_from_world"].matrix()
+        return inv_T(make_T(M[:, :3], M[:, 3])), np.asarray(res["inlier_mask"], bool)
+
+    def refine(self, T: np.ndarray, pids: np.ndarray, kps: np.ndarray, ur: np.ndarray, feats: Features) -> tuple[np.ndarray, np.ndarray]:
+        """Pose-only refinement on matched (point id, keypoint) pairs -> (T_world_cam, inliers (M,))."""
+        X = self.map.points_xyz(pids)
+        return optimize_pose(T, X, feats.uv[kps], ur[kps], self.stereo_cam, self.backend)
+
+    def search_local(self, T: np.ndarray, pids: np.ndarray, feats: Features, tree: cKDTree, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Projection matching of map points ``pids`` -> (matched point ids, keypoint indices, visible mask over pids)."""
+        uv, _, vis = project(T, self.map.points_xyz(pids), self.cam, self.cfg.min_depth)
+        idx = np.flatnonzero(vis)
+        if len(idx) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), vis
+        desc = self.map.descriptors(pids[idx])
+        pairs = match_by_projection(uv[idx], desc, feats.uv, feats.desc, radius, self.cfg.max_hamming, self.cfg.ratio, tree)
+        return pids[idx[pairs[:, 0]]], pairs[:, 1], vis
+
+    def _result(self, T: np.ndarray, pids: np.ndarray, kps: np.ndarray, inl: np.ndarray, n: int, method: str, n_matches: int) -> TrackResult:
+        point_ids = np.full(n, -1, np.int64)
+        point_ids[kps[inl]] = pids[inl]
+        ok = int(inl.sum()) >= self.cfg.min_inliers
+        return TrackResult(T, ok, point_ids, n_matches, int(inl.sum()), method)
+
+    def _finish_local(self, T: np.ndarray, feats: Features, ur: np.ndarray, ref_kf: int, tree: cKDTree, method: str) -> TrackResult:
+        """Second round: the whole local map from a good pose, tight radius, pose-only refinement."""
+        _, pids = self.map.local_map(ref_kf, self.cfg.local_keyframes)
+        mp, mk, vis = self.search_local(T, pids, feats, tree, self.cfg.radius_refine_px)
+        if len(mp) < self.cfg.min_inliers:
+            return TrackResult(T, False, np.full(len(feats), -1, np.int64), len(mp), 0, method)
+        T2, inl = self.refine(T, mp, mk, ur, feats)
+        for pid in pids[vis]:
+            self.map.points[int(pid)].n_visible += 1
+        for pid in mp[inl]:
+            self.map.points[int(pid)].n_found += 1
+        return self._result(T2, mp, mk, inl, len(feats), method, len(mp))
+
+    # -- strategies -----------------------------------------------------------
+    def track_projection(self, feats: Features, ur: np.ndarray, T_pred: np.ndarray, ref_kf: int, radius: float, tree: cKDTree) -> TrackResult | None:
+        _, pids = self.map.local_map(ref_kf, self.cfg.local_keyframes)
+        mp, mk, _ = self.search_local(T_pred, pids, feats, tree, radius)
+        if len(mp) < self.cfg.min_matches:
+            return None
+        T, inl = self.pnp(feats.uv[mk], self.map.points_xyz(mp))
+        if T is None:  # the LO-RANSAC pose is already refined on its inliers; the back end refines in round two
+            return None
+        return self._finish_local(T, feats, ur, ref_kf, tree, "projection")
+
+    def track_keyframe(self, feats: Features, ur: np.ndarray, kf_id: int, tree: cKDTree, method: str = "reference") -> TrackResult | None:
+        """Descriptor matching against one keyframe's map points, PnP, then the local-map round."""
+        kf = self.map.keyframes[kf_id]
+        kps_kf = np.flatnonzero(kf.point_ids >= 0)
+        if len(kps_kf) < self.cfg.min_inliers:
+            return None
+        m = match_mutual(kf.features.desc[kps_kf], feats.desc, ratio=0.8, max_dist=self.cfg.max_hamming)
+        if len(m) < self.cfg.min_inliers:
+            return None
+        pids, kps = kf.point_ids[kps_kf[m[:, 0]]], m[:, 1]
+        T, inl = self.pnp(feats.uv[kps], self.map.points_xyz(pids))
+        if T is None:
+            return None
+        T, inl = self.refine(T, pids[inl], kps[inl], ur, feats)
+        if inl.sum() < self.cfg.min_inliers:
+            return None
+        return self._finish_local(T, feats, ur, kf_id, tree, method)
+
+    def track(self, feats: Features, ur: np.ndarray, T_pred: np.ndarray, ref_kf: int, after_loss: bool) -> TrackResult:
+        """Try projection, then the reference keyframe, then (after a loss) the newest keyframes."""
+        fail = TrackResult(T_pred, False, np.full(len(feats), -1, np.int64))
+        if len(feats) < self.cfg.min_inliers:
+            return fail
+        tree = cKDTree(feats.uv)
+        radius = self.cfg.radius_lost_px if after_loss else self.cfg.radius_px
+        res = self.track_projection(feats, ur, T_pred, ref_kf, radius, tree)
+        if res is None or not res.ok:
+            res = self.track_keyframe(feats, ur, ref_kf, tree)
+        if (res is None or not res.ok) and after_loss:
+            for kf_id in sorted(self.map.keyframes, reverse=True)[: self.cfg.reloc_keyframes]:
+                if kf_id != ref_kf:
+                    res = self.track_keyframe(feats, ur, kf_id, tree, "relocalised")
+                    if res is not None and res.ok:
+                        break
+        return res if res is not None and res.ok else fail
+
+    def best_reference(self, point_ids: np.ndarray, default: int) -> int:
+        """The keyframe observing most of the frame's tracked points (ties: newest)."""
+        counts: dict[int, int] = {}
+        for pid in point_ids[point_ids >= 0]:
+            for k in self.map.points[int(pid)].observations:
+                counts[k] = counts.get(k, 0) + 1
+        if not counts:
+            return default
+        return max(counts.items(), key=lambda kv: (kv[1], kv[0]))[0]
