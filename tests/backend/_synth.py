@@ -46,22 +46,23 @@ def full_scene(rng: np.random.Generator, n_kf: int = 6, n_pts: int = 200, stereo
     return poses, pts, _problem(rng, poses, pts, pairs, stereo_frac)
 
 
-def window(rng: np.random.Generator, n_kf: int = 10, obs_per_kf: int = 300, stereo_frac: float = 0.5):
-    """ORB-SLAM-like local window: each point seen by 2 consecutive keyframes, ~obs_per_kf observations each."""
+def window(rng: np.random.Generator, n_kf: int = 10, obs_per_kf: int = 300, stereo_frac: float = 0.5, views: int = 2):
+    """ORB-SLAM-like local window: each point seen by ``views`` consecutive keyframes, ~obs_per_kf obs each."""
     poses = camera_path(rng, n_kf, length=0.15 * n_kf)
     pts, pairs = [], []
-    for j in range(n_kf * obs_per_kf // 2):
-        a = j % n_kf
-        b = a + 1 if a + 1 < n_kf else a - 1
+    for j in range(n_kf * obs_per_kf // views):
+        a = min(j % n_kf, n_kf - views)
+        kfs = list(range(a, a + views))
+        anchor = kfs[j % views]
         while True:
             uv = rng.uniform([20, 20], [W - 20, H - 20])
             z = rng.uniform(3.0, 12.0)
             p_c = np.array([(uv[0] - CAM.cx) / CAM.fx * z, (uv[1] - CAM.cy) / CAM.fy * z, z])
-            p_w = poses[a][:3, :3] @ p_c + poses[a][:3, 3]
-            if visible(poses[b], p_w[None])[0]:
+            p_w = poses[anchor][:3, :3] @ p_c + poses[anchor][:3, 3]
+            if all(visible(poses[k], p_w[None])[0] for k in kfs):
                 break
         pts.append(p_w)
-        pairs += [(a, j), (b, j)]
+        pairs += [(k, j) for k in kfs]
     return poses, np.array(pts), _problem(rng, poses, np.array(pts), pairs, stereo_frac)
 
 
@@ -89,7 +90,9 @@ def perturb_pose(rng: np.random.Generator, T: np.ndarray, trans_m: float, rot_de
 
 def perturb(rng, problem: BAProblem, trans_m=0.02, rot_deg=1.0, pt_m=0.05) -> BAProblem:
     """Copy of problem with the non-fixed poses and all points perturbed (fixed poses untouched)."""
-    poses = {k: (T.copy() if k in problem.fixed else perturb_pose(rng, T, trans_m, rot_deg)) for k, T in problem.poses.items()}
+    poses = {
+        k: (T.copy() if k in problem.fixed else perturb_pose(rng, T, trans_m, rot_deg)) for k, T in problem.poses.items()
+    }
     points = {j: p + rng.normal(0.0, pt_m / np.sqrt(3), 3) for j, p in problem.points.items()}
     return BAProblem(poses, set(problem.fixed), points, problem.obs_kf.copy(), problem.obs_pt.copy(),
                      problem.obs_uv.copy(), problem.obs_ur.copy(), problem.obs_sigma)

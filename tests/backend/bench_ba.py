@@ -29,9 +29,14 @@ def _stats(ts: list[float]) -> str:
     return f"median {np.median(ts):7.2f} ms  (min {np.min(ts):7.2f})"
 
 
-def bench_local_ba(repeat: int, n_kf: int, obs_per_kf: int, outliers: float) -> None:
+def bench_local_ba(repeat: int, n_kf: int, obs_per_kf: int, views: int, outliers: float) -> None:
     rng = np.random.default_rng(0)
-    poses, pts, prob = S.window(rng, n_kf=n_kf, obs_per_kf=obs_per_kf)
+    if views:
+        poses, pts, prob = S.window(rng, n_kf=n_kf, obs_per_kf=obs_per_kf, views=views)
+        name = f"window {n_kf} kf x {obs_per_kf} obs, {views} views/pt"
+    else:
+        poses, pts, prob = S.full_scene(rng, n_kf=n_kf, n_pts=obs_per_kf)
+        name = f"full scene {n_kf} kf x {obs_per_kf} pts, every pt in every kf"
     prob.fixed = {0, 1}
     prob.obs_uv += rng.normal(0.0, 0.5, prob.obs_uv.shape)
     prob.obs_ur += rng.normal(0.0, 0.5, prob.obs_ur.shape)
@@ -44,8 +49,8 @@ def bench_local_ba(repeat: int, n_kf: int, obs_per_kf: int, outliers: float) -> 
         terr = max(S.pose_error(r.poses[k], poses[k])[0] for k in r.poses)
         stages = {k: np.median([x.ms[k] for x in runs]) for k in ("build", "optimize", "classify")}
         print(
-            f"local BA {n_kf} kf x {obs_per_kf} obs ({len(p.obs_kf)} obs, {len(p.points)} pts), fixed={label}: "
-            f"{_stats([x.ms['total'] for x in runs])}; stages {', '.join(f'{k} {v:.1f}' for k, v in stages.items())}; "
+            f"local BA {name} ({len(p.obs_kf)} obs, {len(p.points)} pts, {outliers:.0%} outliers), fixed={label}: "
+            f"{_stats([x.ms['total'] for x in runs])}; {', '.join(f'{k} {v:.1f}' for k, v in stages.items())}; "
             f"{r.iterations} it; max pose err {1e3 * terr:.2f} mm; outliers found {np.mean(~r.inliers[bad]):.3f}, "
             f"false pos {np.mean(~r.inliers[~bad]):.4f}"
         )
@@ -104,7 +109,8 @@ def bench_pose_only(repeat: int) -> None:
             dt, dr = S.pose_error(Te, T)
             print(
                 f"pose-only {label:5s} {n} pts, 20 % outliers, 0.3 px noise: {_stats(ts)}; "
-                f"err {1e3 * dt:.3f} mm {dr:.4f} deg; outliers found {np.mean(~inl[bad]):.3f}, false pos {np.mean(~inl[~bad]):.3f}"
+                f"err {1e3 * dt:.3f} mm {dr:.4f} deg; "
+                f"outliers found {np.mean(~inl[bad]):.3f}, false pos {np.mean(~inl[~bad]):.3f}"
             )
 
 
@@ -113,7 +119,9 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=7)
     args = ap.parse_args()
     bench_pose_only(max(args.repeat * 4, 20))
-    bench_local_ba(args.repeat, 10, 300, 0.05)
+    bench_local_ba(args.repeat, 10, 300, 2, 0.05)
+    bench_local_ba(args.repeat, 10, 300, 4, 0.05)
+    bench_local_ba(args.repeat, 6, 200, 0, 0.05)
 
 
 if __name__ == "__main__":

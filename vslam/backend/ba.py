@@ -13,34 +13,49 @@ Local BA (``local_bundle_adjustment``), after ORB-SLAM2 ``Optimizer::LocalBundle
 1. *Screen*: an observation with a NaN, or whose point is behind its camera (z <= 1e-6 m) at the initial
    guess, gets no factor and is reported as an outlier. Points / keyframes left without factors are
    returned unchanged.
-2. *Build*: one ``GenericStereoFactor3D`` (finite ur and baseline > 0) or ``GenericProjectionFactorCal3_S2``
-   per observation, isotropic ``pixel_sigma`` (or ``BAProblem.obs_sigma``) inside a Huber model.
-   Fixed keyframes are held by ``NonlinearEqualityPose3``. If no observed keyframe is fixed, the one with
-   the lowest id is held instead (gauge: 6 DOF; for mono-only windows the scale stays free and is only
-   held near the initial guess by LM damping -- pass at least two fixed keyframes for mono).
-3. *Optimise*: Levenberg-Marquardt, ``max_iterations``.
+2. *Build*: keys ``X(kf_id)`` (Pose3 = T_world_cam) and ``L(point_id)``; one ``GenericStereoFactor3D``
+   (finite ur and baseline > 0) or ``GenericProjectionFactorCal3_S2`` per observation, isotropic
+   ``pixel_sigma`` (or ``BAProblem.obs_sigma``) inside a Huber model. Fixed keyframes are held by a
+   PriorFactorPose3 of sigma 1e-6 (NonlinearEqualityPose3 gives the same result but is up to 3.5x slower, see
+   ``factors.py``). If no observed keyframe is fixed, the one with the lowest id is held instead (gauge:
+   6 DOF; for mono-only windows the scale then stays free, only held near the initial guess by LM damping --
+   pass at least two fixed keyframes for mono).
+3. *Optimise*: Levenberg-Marquardt, ``max_iterations`` (lambda settings in ``factors.lm_params``).
 4. *Classify*: chi2 test on each observation's unrobust whitened squared error (chi2_mono / chi2_stereo).
-5. *Refine*: the outlier factors are dropped and LM runs ``refine_iterations`` more (still Huber: a few
-   undetected outliers remain harmless). ORB-SLAM2 drops the kernel here; with 1-2 % of residual outliers
-   keeping it costs nothing in accuracy on our synthetic tests. Then all screened observations are
+5. *Refine*: the outlier factors are dropped and LM runs ``refine_iterations`` more (ORB-SLAM2: 10) from
+   the first-round estimate; variables left with no factor keep their first-round value. The Huber kernel
+   stays on (ORB-SLAM2 drops it): the few undetected outliers then stay harmless, and on exact synthetic
+   data the second round still lands on the exact solution. Then every screened observation is
    classified again at the final estimate -> ``BAResult.inliers``.
 
 ``BAResult.poses`` holds every keyframe *not* in ``problem.fixed`` (including a gauge-anchored one, which is
 returned unchanged); fixed keyframes are left out -- the caller's copies are the truth, bit for bit.
-``initial_error`` / ``final_error`` are the robust (Huber) graph error of *all* screened observations at the
-initial guess and at the final estimate (the same graph, so they compare). ``iterations`` = LM iterations of
-both rounds. ``ms``: build, optimize (both LM rounds), classify (both), total.
+``points`` holds every point (unobserved / fully screened ones unchanged). ``initial_error`` /
+``final_error``: robust (Huber) graph error of *all* screened observations at the initial guess and at
+the final estimate (the same graph, so they compare). ``iterations``: LM iterations of both rounds.
+``ms``: build, optimize (both LM rounds), classify (both), total.
 
-Measured (``python -m tests.backend.bench_ba``; 2-core Xeon, single thread, median of 5):
+Measured with ``python -m tests.backend.bench_ba`` on the project machine (2-core Xeon, BLAS/OpenMP one
+thread, machine shared with other jobs, load ~3; medians of 7). Synthetic data: 50 % stereo, 0.5 px noise,
+5 % outliers of 30 px, 2 fixed keyframes, start 2 cm / 1 deg / 5 cm off.
 
-=====================================================================  =========================
-local BA, 10 kf x 300 obs (3000 obs, ~1500 pts, 2 fixed, 50 % stereo)  see BENCH table below
-pose-only, 300 / 500 points, 20 % outliers, numpy (this module)        see BENCH table below
-=====================================================================  =========================
+===============================================================================  ==========================
+local BA, window 10 kf x 300 obs, 2 views per point (3000 obs, 1500 pts)         ~240 ms (build 14,
+                                                                                 optimize 220 = 15 LM
+                                                                                 iterations, classify 5)
+local BA, window 10 kf x 300 obs, 4 views per point (3000 obs, 750 pts)          ~170 ms
+local BA, 6 kf x 200 pts, every point in every keyframe (1200 obs)               ~60 ms
+pose-only (numpy, ``optimize_pose``), 300 / 500 pts, 20 % outliers, 4 rounds     1.95 / 2.2 ms
+pose-only as a GTSAM graph (points held by priors), same data and pose           24 / 39 ms
+===============================================================================  ==========================
+
+A GTSAM LM iteration costs ~15 ms for 3000 observations (linearise ~2 ms, eliminate ~10 ms: GTSAM's
+per-clique overhead over 1500 tiny point cliques); the Python-side build is ~5 us per factor.
 """
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass, field
 
@@ -49,8 +64,7 @@ import numpy as np
 
 from vslam.backend import factors as fx
 from vslam.backend.pose_only import refine_pose
-from vslam.backend.projection import chi2_thresholds, measurement_matrix, whitened_sq_errors
-from vslam.geometry.se3 import inv_T
+from vslam.backend.window import DenseWindow, dense_window
 
 
 @dataclass(frozen=True)
@@ -110,73 +124,54 @@ class BAResult:
     ms: dict[str, float] = field(default_factory=dict)
 
 
-@dataclass
-class _Obs:
-    """Observations as dense arrays: ids, dense indices into the sorted id lists, measurements."""
-
-    kf: np.ndarray  # (M,) keyframe ids
-    pt: np.ndarray  # (M,) point ids
-    ik: np.ndarray  # (M,) index into kf_ids
-    ip: np.ndarray  # (M,) index into pt_ids
-    meas: np.ndarray  # (M,3) uL, v, uR (0 for mono)
-    stereo: np.ndarray  # (M,) bool
-    sigma: np.ndarray  # (M,) px
-    thr: np.ndarray  # (M,) chi2 threshold
-
-
 def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: BackendConfig = BackendConfig()) -> BAResult:
-    """Optimise the window's non-fixed poses and all observed points; see the module docstring for the steps."""
+    """Optimise the window's non-fixed poses and all observed points; the steps are in the module docstring."""
     t0 = time.perf_counter()
-    kf_ids = np.array(sorted(problem.poses), dtype=np.int64)
-    pt_ids = np.array(sorted(problem.points), dtype=np.int64)
-    obs = _dense_observations(problem, camera, cfg, kf_ids, pt_ids)
-    Twc0 = np.stack([np.asarray(problem.poses[k], np.float64) for k in kf_ids.tolist()]) if kf_ids.size else np.zeros((0, 4, 4))
-    P0 = np.array([problem.points[j] for j in pt_ids.tolist()], dtype=np.float64).reshape(-1, 3)
-    valid = np.isfinite(_chi2(obs, Twc0, P0, camera))  # screen: NaN anywhere or behind the camera -> no factor
+    win = dense_window(problem, camera, cfg)
+    valid = np.isfinite(win.chi2(win.Twc0, win.P0, camera))  # screen: NaN anywhere or behind the camera
     result = BAResult(
-        poses={k: np.array(problem.poses[k], dtype=np.float64) for k in kf_ids.tolist() if k not in problem.fixed},
-        points={j: np.array(problem.points[j], dtype=np.float64).reshape(3) for j in pt_ids.tolist()},
-        inliers=np.zeros(obs.kf.shape[0], dtype=bool),
+        poses={k: win.Twc0[i].copy() for i, k in enumerate(win.kf_ids.tolist()) if k not in problem.fixed},
+        points={j: win.P0[i].copy() for i, j in enumerate(win.pt_ids.tolist())},
+        inliers=np.zeros(win.kf.shape[0], dtype=bool),
     )
     if not valid.any():
         result.ms = {"build": 0.0, "optimize": 0.0, "classify": 0.0, "total": 1e3 * (time.perf_counter() - t0)}
         return result
 
     idx = np.flatnonzero(valid)
-    used_k, used_p = np.unique(obs.ik[idx]), np.unique(obs.ip[idx])  # sorted = GTSAM key order
+    used_k, used_p = np.unique(win.ik[idx]), np.unique(win.ip[idx])  # sorted, like GTSAM's key order
     builder = fx.FactorBuilder(camera, cfg.huber_k)
-    facs = builder.factors(obs.kf[idx], obs.pt[idx], obs.meas[idx], obs.stereo[idx], obs.sigma[idx])
-    anchors = _anchors(problem, kf_ids[used_k].tolist())
-    values = _initial_values(Twc0[used_k], P0[used_p], kf_ids[used_k], pt_ids[used_p])
-    graph = _graph(facs, anchors, Twc0, kf_ids, builder)
+    facs = builder.factors(win.kf[idx], win.pt[idx], win.meas[idx], win.stereo[idx], win.sigma[idx])
+    anchors = _anchors(problem.fixed, win.kf_ids[used_k].tolist())
+    holds = [builder.hold(fx.X(k), problem.poses[k]) for k in anchors]
+    values = _initial_values(win.Twc0[used_k], win.P0[used_p], win.kf_ids[used_k], win.pt_ids[used_p])
+    graph = _graph(facs + holds)
     t1 = time.perf_counter()
 
-    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, fx.lm_params(cfg.max_iterations))
-    est = opt.optimize()
-    iters = opt.iterations()
+    est, iters = _levenberg_marquardt(graph, values, cfg.max_iterations)
     t2 = time.perf_counter()
 
-    Twc, P = _estimate_arrays(est, Twc0, P0, used_k, used_p)
-    keep = _chi2(obs, Twc, P, camera)[idx] <= obs.thr[idx]
+    keep = win.chi2(*_estimate_arrays(est, win, used_k, used_p), camera)[idx] <= win.thr[idx]
     t3 = time.perf_counter()
 
-    if cfg.refine_iterations > 0 and keep.any():  # ORB-SLAM2: drop the outliers, optimise again
-        graph2 = graph if keep.all() else _graph([f for f, k in zip(facs, keep.tolist()) if k], anchors, Twc0, kf_ids, builder)
-        opt2 = gtsam.LevenbergMarquardtOptimizer(graph2, est, fx.lm_params(cfg.refine_iterations))
-        est = opt2.optimize()
-        iters += opt2.iterations()
+    if cfg.refine_iterations > 0 and keep.any():  # ORB-SLAM2: drop the outlier factors, optimise again
+        graph2 = _graph(list(itertools.compress(facs, keep.tolist())) + holds)
+        start = _without(est, _orphans(win, idx[keep], used_k, used_p, anchors))
+        est2, more = _levenberg_marquardt(graph2, start, cfg.refine_iterations)
+        est = gtsam.Values(est)
+        est.update(est2)  # a variable that lost all its factors keeps its first-round value
+        iters += more
     t4 = time.perf_counter()
 
-    Twc, P = _estimate_arrays(est, Twc0, P0, used_k, used_p)
-    result.inliers = valid & (_chi2(obs, Twc, P, camera) <= obs.thr)
-    held = set(anchors)
+    Twc, P = _estimate_arrays(est, win, used_k, used_p)
+    result.inliers = valid & (win.chi2(Twc, P, camera) <= win.thr)
     for i in used_k.tolist():
-        k = int(kf_ids[i])
-        if k in result.poses and k not in held:
+        k = int(win.kf_ids[i])
+        if k in result.poses and k not in anchors:  # a gauge anchor comes back unchanged
             result.poses[k] = Twc[i]
     for i in used_p.tolist():
-        result.points[int(pt_ids[i])] = P[i]
-    result.iterations = int(iters)
+        result.points[int(win.pt_ids[i])] = P[i]
+    result.iterations = iters
     result.initial_error = float(graph.error(values))
     result.final_error = float(graph.error(est))
     t5 = time.perf_counter()
@@ -208,56 +203,48 @@ def optimize_pose(
     return refine_pose(T_world_cam, pts_world, uv, ur, camera, cfg, sigma)
 
 
-def _dense_observations(problem: BAProblem, camera: StereoCamera, cfg: BackendConfig, kf_ids, pt_ids) -> _Obs:
-    kf = np.asarray(problem.obs_kf, dtype=np.int64).reshape(-1)
-    pt = np.asarray(problem.obs_pt, dtype=np.int64).reshape(-1)
-    m = kf.shape[0]
-    ik = np.searchsorted(kf_ids, kf)
-    ip = np.searchsorted(pt_ids, pt)
-    bad_k = (ik >= kf_ids.size) | (kf_ids[np.minimum(ik, max(kf_ids.size - 1, 0))] != kf) if m else np.zeros(0, bool)
-    bad_p = (ip >= pt_ids.size) | (pt_ids[np.minimum(ip, max(pt_ids.size - 1, 0))] != pt) if m else np.zeros(0, bool)
-    if m and (bad_k.any() or bad_p.any()):
-        raise ValueError(
-            f"BAProblem observations name unknown keyframes {sorted(set(kf[bad_k].tolist()))} "
-            f"or points {sorted(set(pt[bad_p].tolist()))}"
-        )
-    meas, stereo = measurement_matrix(np.asarray(problem.obs_uv).reshape(m, 2), np.asarray(problem.obs_ur).reshape(m))
-    if camera.baseline <= 0:
-        stereo[:] = False
-    sigma = np.full(m, cfg.pixel_sigma) if problem.obs_sigma is None else np.asarray(problem.obs_sigma, np.float64).reshape(m)
-    thr = chi2_thresholds(stereo, cfg.chi2_mono, cfg.chi2_stereo)
-    return _Obs(kf, pt, ik, ip, meas, stereo, np.where(sigma > 0, sigma, np.nan), thr)
+def _levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, iterations: int):
+    """-> (estimate, LM iterations run)."""
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, fx.lm_params(iterations))
+    est = opt.optimize()
+    return est, int(opt.iterations())
 
 
-def _chi2(obs: _Obs, Twc: np.ndarray, P: np.ndarray, camera: StereoCamera) -> np.ndarray:
-    """(M,) unrobust whitened squared errors at poses Twc (K,4,4) T_world_cam and points P (P,3); inf = NaN/behind."""
-    if obs.kf.shape[0] == 0:
-        return np.zeros(0)
-    Tcw = inv_T(Twc)
-    R, t = Tcw[obs.ik, :3, :3], Tcw[obs.ik, :3, 3]
-    pc = np.einsum("mij,mj->mi", R, P[obs.ip]) + t
-    chi2, _ = whitened_sq_errors(pc, obs.meas, obs.stereo, obs.sigma, camera)
-    return chi2
+def _orphans(win: DenseWindow, kept: np.ndarray, used_k, used_p, anchors: list[int]) -> list[int]:
+    """Keys of variables with no factor left once only the observations ``kept`` (indices) remain."""
+    lost_p = np.setdiff1d(used_p, win.ip[kept])
+    lost_k = [k for k in win.kf_ids[np.setdiff1d(used_k, win.ik[kept])].tolist() if k not in anchors]
+    return [fx.X(k) for k in lost_k] + [fx.L(int(j)) for j in win.pt_ids[lost_p].tolist()]
 
 
-def _estimate_arrays(est: gtsam.Values, Twc0, P0, used_k, used_p) -> tuple[np.ndarray, np.ndarray]:
+def _without(values: gtsam.Values, keys: list[int]) -> gtsam.Values:
+    """Copy of values minus keys (GTSAM's sequential solvers reject a variable that no factor touches)."""
+    if not keys:
+        return values
+    out = gtsam.Values(values)
+    for key in keys:
+        out.erase(key)
+    return out
+
+
+def _estimate_arrays(est: gtsam.Values, win: DenseWindow, used_k, used_p) -> tuple[np.ndarray, np.ndarray]:
     """(K,4,4) T_world_cam and (P,3) points at the estimate; variables not in the graph keep their initial value."""
-    Twc, P = Twc0.copy(), P0.copy()
-    rows = gtsam.utilities.extractPose3(est)  # (k,12): R row-major, t; in key order = used_k order
+    Twc, P = win.Twc0.copy(), win.P0.copy()
+    rows = gtsam.utilities.extractPose3(est)  # (k,12): R row-major then t, in key order = used_k order
     Twc[used_k, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
     Twc[used_k, :3, 3] = rows[:, 9:]
-    P[used_p] = gtsam.utilities.extractPoint3(est)
+    P[used_p] = gtsam.utilities.extractPoint3(est)  # key order = used_p order
     return Twc, P
 
 
-def _anchors(problem: BAProblem, observed_kf: list[int]) -> list[int]:
+def _anchors(fixed: set[int], observed_kf: list[int]) -> list[int]:
     """Keyframes to hold: the fixed ones that are observed, else the observed one with the lowest id (gauge)."""
-    held = [k for k in observed_kf if k in problem.fixed]
+    held = [k for k in observed_kf if k in fixed]
     return held if held else observed_kf[:1]
 
 
 def _initial_values(Twc: np.ndarray, P: np.ndarray, kfs: np.ndarray, pts: np.ndarray) -> gtsam.Values:
-    """Values with X(kfs[i]) = Twc[i] (Pose3) and L(pts[i]) = P[i] (Point3)."""
+    """Values with X(kfs[i]) = Pose3(Twc[i]) and L(pts[i]) = P[i]."""
     values = gtsam.Values()
     for k, T in zip(kfs.tolist(), Twc):
         values.insert(fx.X(k), fx.pose3(T))
@@ -266,11 +253,8 @@ def _initial_values(Twc: np.ndarray, P: np.ndarray, kfs: np.ndarray, pts: np.nda
     return values
 
 
-def _graph(facs, anchors: list[int], Twc0: np.ndarray, kf_ids: np.ndarray, builder) -> gtsam.NonlinearFactorGraph:
-    """Visual factors plus one constraint per held keyframe (at its initial pose)."""
+def _graph(factors: list) -> gtsam.NonlinearFactorGraph:
     graph = gtsam.NonlinearFactorGraph()
-    for f in facs:
+    for f in factors:
         graph.add(f)
-    for k in anchors:
-        graph.add(builder.hold(fx.X(k), Twc0[int(np.searchsorted(kf_ids, k))]))
     return graph

@@ -10,10 +10,18 @@ Parameterisation: T_cam_world is updated on the left, ``T <- [Exp(w) | v] T``, s
 [-[p_cam]x, I]. Residual rows per observation: (uL, v, uR) - measured, whitened by 1/sigma; the uR row is
 zeroed for a mono observation, which makes one code path for mono and stereo.
 
-Why numpy and not GTSAM (measured by ``python -m tests.backend.bench_ba``, 2-core Xeon, one thread,
-20 % outliers, 3 cm / 2 deg start, 4 rounds): see the numbers in ``vslam/backend/ba.py``'s docstring. A
-GTSAM graph needs one landmark variable per point held by a NonlinearEquality and is rebuilt per round; it
-reaches the same pose (to 1e-9 m) several times slower.
+Why numpy and not GTSAM (``python -m tests.backend.bench_ba``, 2-core Xeon, BLAS one thread, shared
+machine; 20 % outliers of 30 px, 0.3 px noise, 3 cm / 2 deg start, 4 rounds, medians):
+
+==========================================  ===========  ===========
+                                            300 points   500 points
+numpy (this module)                         1.95 ms      2.2 ms
+GTSAM graph, points held by tight priors    24 ms        39 ms
+==========================================  ===========  ===========
+
+Both reach the same pose (0.8 / 0.3 mm, 0.005 deg from the truth) and flag the same outliers. The numpy
+cost is ~10 linearisations (~0.1 ms each, 500 points) plus per-call overhead; LM stops a round as soon as
+the step is < 1e-7 (rad, m) or the cost falls by < 1e-9 relative, so rounds 2-4 take 1-3 iterations.
 """
 
 from __future__ import annotations
@@ -144,9 +152,13 @@ def _linearize(R, t, PT, ZT, S, w, camera, huber_k):
     c = a * S
     J = np.empty((6, 3, n))
     xy = xn * yn
-    J[0, 0], J[1, 0], J[2, 0], J[3, 0], J[4, 0], J[5, 0] = -a * xy, a * (1.0 + xn * xn), -a * yn, a * iz, 0.0, -a * xn * iz
-    J[0, 1], J[1, 1], J[2, 1], J[3, 1], J[4, 1], J[5, 1] = -b * (1.0 + yn * yn), b * xy, b * xn, 0.0, b * iz, -b * yn * iz
-    J[0, 2], J[1, 2], J[2, 2], J[3, 2], J[4, 2], J[5, 2] = -c * xb * yn, c * (1.0 + xb * xn), -c * yn, c * iz, 0.0, -c * xb * iz
+    # J[column, row]: columns (w, v), rows (uL, v, uR); the formulas are in the docstring
+    J[0, 0], J[1, 0], J[2, 0] = -a * xy, a * (1.0 + xn * xn), -a * yn
+    J[3, 0], J[4, 0], J[5, 0] = a * iz, 0.0, -a * xn * iz
+    J[0, 1], J[1, 1], J[2, 1] = -b * (1.0 + yn * yn), b * xy, b * xn
+    J[3, 1], J[4, 1], J[5, 1] = 0.0, b * iz, -b * yn * iz
+    J[0, 2], J[1, 2], J[2, 2] = -c * xb * yn, c * (1.0 + xb * xn), -c * yn
+    J[3, 2], J[4, 2], J[5, 2] = c * iz, 0.0, -c * xb * iz
     J = J.reshape(6, 3 * n)
     r = np.concatenate([ru * sw, rv * sw, rr * sw])
     return cost, J @ J.T, J @ r
