@@ -40,7 +40,7 @@ class MappingConfig:
     fuse_radius_px: float = 3.0
     max_hamming: int = 50
     triangulate: Literal["mono", "all", "none"] = "mono"  # which sensors create points by two-view triangulation
-    tri_neighbors: int = 8
+    tri_neighbors: int = 5
     tri_parallax_deg: float = 1.0
     tri_max_reproj_px: float = 2.0
     max_new_points: int = 1000  # RGB-D/stereo points created per keyframe, closest first

@@ -46,6 +46,7 @@ class TrackingConfig:
     kf_ratio: float = 0.75  # RGB-D/stereo: keyframe when inliers < kf_ratio x tracked points of the reference keyframe
     kf_ratio_mono: float = 0.9  # monocular (ORB-SLAM's thRefRatio values)
     kf_max_frames: int = 30  # ... or this many frames since the last one
+    kf_min_frames_mono: int = 3  # monocular: at least this many frames apart (stands in for ORB-SLAM's "mapping busy")
     kf_close_tracked: int = 100  # RGB-D/stereo: ... or fewer close points tracked than this
     kf_close_untracked: int = 70  # ... while this many close keypoints are not in the map
     close_baselines: float = 40.0  # "close" = depth < close_baselines x baseline (ORB-SLAM thDepth)
@@ -82,6 +83,8 @@ def need_keyframe(n_inliers: int, ref_tracked: int, frames_since: int, n_close_t
     the tracked points fall below kf_ratio of the reference keyframe's, when RGB-D/stereo runs short of
     close tracked points while many close ones are unmapped, or when kf_max_frames have passed."""
     close_short = sensor != "mono" and n_close_tracked < cfg.kf_close_tracked and n_close_untracked > cfg.kf_close_untracked
+    if sensor == "mono" and frames_since < cfg.kf_min_frames_mono:
+        return False
     ratio = cfg.kf_ratio_mono if sensor == "mono" else cfg.kf_ratio
     weak = n_inliers < ratio * ref_tracked or close_short
     return bool((weak and n_inliers > 15) or (frames_since >= cfg.kf_max_frames and n_inliers >= cfg.min_inliers))

@@ -1,0 +1,76 @@
+"""Extractor bucketing and descriptor matching: exact answers on constructed inputs."""
+
+import numpy as np
+
+from vslam.data.synthetic import SyntheticConfig, SyntheticSequence
+from vslam.features import EXTRACTORS, FeatureConfig, make_extractor
+from vslam.features.matching import hamming_rows, match_by_projection, match_mutual
+from vslam.features.orb import bucket
+
+
+def _desc(n, rng):
+    return rng.integers(0, 256, size=(n, 32), dtype=np.uint8)
+
+
+def test_hamming_rows():
+    a = np.zeros((2, 32), np.uint8)
+    b = a.copy()
+    b[0, 0] = 0b1011
+    b[1, :] = 255
+    assert hamming_rows(a, b).tolist() == [3, 256]
+
+
+def test_mutual_matching_recovers_a_permutation():
+    rng = np.random.default_rng(0)
+    d1 = _desc(200, rng)
+    perm = rng.permutation(200)
+    d2 = d1[perm].copy()
+    m = match_mutual(d1, d2)
+    assert len(m) == 200
+    assert np.array_equal(perm[m[:, 1]], m[:, 0])
+
+
+def test_projection_matching_radius_threshold_and_uniqueness():
+    rng = np.random.default_rng(1)
+    kp_desc = _desc(50, rng)
+    kp_uv = rng.uniform(0, 300, size=(50, 2))
+    # points 0..9 predicted 1 px from keypoints 0..9 with their descriptors
+    pred = kp_uv[:10] + 1.0
+    pairs = match_by_projection(pred, kp_desc[:10], kp_uv, kp_desc, radius=3.0, max_dist=10)
+    assert pairs.tolist() == [[i, i] for i in range(10)]
+    # too far: nothing within the radius
+    assert len(match_by_projection(pred + 50.0, kp_desc[:10], kp_uv + 0.0, kp_desc, radius=3.0, max_dist=10)) <= 1
+    # descriptor too different: rejected by the Hamming threshold
+    assert len(match_by_projection(pred, 255 - kp_desc[:10], kp_uv, kp_desc, radius=3.0, max_dist=10)) == 0
+    # two points claim keypoint 0: the closer descriptor keeps it
+    d_far = kp_desc[0].copy()
+    d_far[:2] ^= 0xFF  # 16 bits off
+    pairs = match_by_projection(kp_uv[[0, 0]], np.stack([d_far, kp_desc[0]]), kp_uv, kp_desc, radius=2.0, max_dist=64)
+    assert pairs.tolist() == [[1, 0]]
+
+
+def test_bucketing_spreads_keypoints():
+    # 1000 strong corners in one cell, 100 weak ones spread over the image
+    rng = np.random.default_rng(2)
+    dense = rng.uniform(0, 20, size=(1000, 2))
+    spread = rng.uniform(0, 320, size=(100, 2))
+    xy = np.vstack([dense, spread])
+    resp = np.r_[np.full(1000, 10.0), np.full(100, 1.0)]
+    keep = bucket(xy, resp, (240, 320), 200, 8, 6)
+    assert len(keep) == 200
+    assert np.sum(keep >= 1000) >= 90  # almost all spread keypoints survive
+
+
+def test_orb_extractor_on_synthetic_image():
+    seq = SyntheticSequence(SyntheticConfig(n_frames=1, width=320, height=240, fx=262.5, fy=262.5, n_movers=0), sensor="rgbd")
+    frame = next(iter(seq))
+    assert "orb" in EXTRACTORS
+    f = make_extractor(FeatureConfig(n_features=500)).detect(frame.image, seq.calibration.cam0)
+    assert 300 < len(f) <= 500
+    assert f.desc.shape == (len(f), 32) and f.uv.shape == f.raw.shape == (len(f), 2)
+    np.testing.assert_allclose(f.uv, f.raw)  # the synthetic camera has no distortion
+    # spread: every quadrant of the image holds keypoints
+    q = (f.raw[:, 0] > 160).astype(int) + 2 * (f.raw[:, 1] > 120)
+    assert np.bincount(q, minlength=4).min() > 30
+    empty = make_extractor(FeatureConfig()).detect(np.zeros((240, 320), np.uint8), seq.calibration.cam0)
+    assert len(empty) == 0

@@ -1,0 +1,96 @@
+"""Map bookkeeping: observations both ways, covisibility, fusion, culling; the keyframe rule."""
+
+import numpy as np
+
+from vslam.backend.ba import BackendConfig, StereoCamera
+from vslam.data.types import PinholeCamera
+from vslam.features.base import Features
+from vslam.mapping.local_mapping import LocalMapper, MappingConfig
+from vslam.mapping.map import Map
+from vslam.tracking.tracker import TrackingConfig, need_keyframe
+
+
+def _feats(n, seed=0):
+    rng = np.random.default_rng(seed)
+    uv = rng.uniform(0, 300, size=(n, 2))
+    return Features(uv, uv.copy(), rng.integers(0, 256, (n, 32), dtype=np.uint8), np.zeros(n, np.int64), np.ones(n))
+
+
+def _map_with(n_kf=3, n_kp=40):
+    m = Map()
+    for k in range(n_kf):
+        m.add_keyframe(k, float(k), np.eye(4), _feats(n_kp, k), np.full(n_kp, np.nan), np.full(n_kp, np.nan))
+    return m
+
+
+def test_observations_are_kept_consistent():
+    m = _map_with()
+    p = m.add_point(np.zeros(3), 0, 5)
+    m.add_observation(p.id, 1, 7)
+    assert p.observations == {0: 5, 1: 7}
+    assert m.keyframes[0].point_ids[5] == p.id and m.keyframes[1].point_ids[7] == p.id
+    m.add_observation(p.id, 1, 8)  # re-observed at another keypoint of the same keyframe: moves
+    assert m.keyframes[1].point_ids[7] == -1 and m.keyframes[1].point_ids[8] == p.id
+    m.remove_observation(p.id, 0)
+    assert m.keyframes[0].point_ids[5] == -1 and p.id in m.points
+    m.remove_observation(p.id, 1)  # last observation gone: the point goes too
+    assert p.id not in m.points and (m.keyframes[1].point_ids == -1).all()
+    ids = [m.add_point(np.zeros(3), 2, i).id for i in range(3)]
+    assert ids == sorted(ids) and ids[0] > p.id  # ids only increase
+
+
+def test_covisibility_counts_and_local_map():
+    m = _map_with(4)
+    for i in range(20):  # kf0-kf1 share 20, kf0-kf2 share 10, kf3 shares nothing
+        p = m.add_point(np.zeros(3), 0, i)
+        m.add_observation(p.id, 1, i)
+        if i < 10:
+            m.add_observation(p.id, 2, i)
+    assert m.covisibility(0) == {1: 20, 2: 10}
+    assert m.covisibility(3) == {}
+    assert m.covisible_keyframes(0, min_shared=15) == [1]
+    assert m.covisible_keyframes(0, min_shared=1) == [1, 2]
+    kfs, pts = m.local_map(2, min_shared=5)
+    assert kfs == [2, 1, 0] and len(pts) == 20  # ties (10 and 10): newest first
+
+
+def test_merge_points_moves_observations():
+    m = _map_with()
+    a = m.add_point(np.zeros(3), 0, 1)
+    m.add_observation(a.id, 1, 1)
+    b = m.add_point(np.ones(3), 2, 3)
+    m.merge_points(a.id, b.id)
+    assert b.id not in m.points and a.observations == {0: 1, 1: 1, 2: 3}
+    assert m.keyframes[2].point_ids[3] == a.id
+
+
+def test_culling_removes_weak_recent_points():
+    m = _map_with(4)
+    cam = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
+    mapper = LocalMapper(m, cam, StereoCamera(262.5, 262.5, 159.5, 119.5, 0.08), "rgbd", MappingConfig(), BackendConfig())
+    rarely_found = m.add_point(np.zeros(3), 0, 0)
+    rarely_found.n_visible, rarely_found.n_found = 10, 1
+    lonely = m.add_point(np.zeros(3), 0, 1)  # seen by one keyframe only
+    good = m.add_point(np.zeros(3), 0, 2)
+    for k in (1, 2):
+        m.add_observation(good.id, k, 2)
+    young = m.add_point(np.zeros(3), 3, 3)
+    mapper.recent = [rarely_found.id, lonely.id, good.id, young.id]
+    mapper.cull(cur_kf=2)
+    assert rarely_found.id not in m.points and lonely.id not in m.points
+    assert good.id in m.points and young.id in m.points
+
+
+def test_keyframe_decision():
+    cfg = TrackingConfig()
+    # plenty of tracked points relative to the reference: no keyframe
+    assert not need_keyframe(300, 320, 5, 200, 10, "rgbd", cfg)
+    # tracked points fell under kf_ratio of the reference's
+    assert need_keyframe(200, 320, 5, 200, 10, "rgbd", cfg)
+    # RGB-D: few close points tracked while many close keypoints are unmapped
+    assert need_keyframe(300, 320, 5, 50, 200, "rgbd", cfg)
+    assert not need_keyframe(300, 320, 5, 50, 200, "mono", cfg)
+    # max frames elapsed
+    assert need_keyframe(300, 320, cfg.kf_max_frames, 200, 10, "rgbd", cfg)
+    # too few inliers to make a useful keyframe
+    assert not need_keyframe(10, 320, 5, 5, 200, "rgbd", cfg)
