@@ -1,0 +1,43 @@
+"""Entry point of the fusion experiments: ``EXPERIMENTS[name](out_dir, seed, quick) -> metrics``.
+
+Each writes PNG plots, ``report.md`` and ``metrics.json`` into out_dir and returns the
+headline metrics (JSON-safe, with 'seed_claim' and 'ours'). ``add_cli`` registers
+``vslam fusion <experiment> [--out DIR] [--seed N] [--quick]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any, Callable
+
+from vslam.fusion.exp_group import run_identification, run_multi_vehicle
+from vslam.fusion.exp_nav import run_ins_gnss, run_validity
+
+Experiment = Callable[..., dict[str, Any]]
+
+EXPERIMENTS: dict[str, Experiment] = {
+    "ins_gnss": run_ins_gnss,
+    "validity": run_validity,
+    "identification": run_identification,
+    "multi_vehicle": run_multi_vehicle,
+}
+
+
+def cmd_fusion(args: argparse.Namespace) -> int:
+    out = Path(args.out) if args.out else Path("runs") / "fusion" / args.experiment
+    metrics = EXPERIMENTS[args.experiment](out, seed=args.seed, quick=args.quick)
+    print(json.dumps({"seed_claim": metrics.get("seed_claim"), "report": str(out / "report.md")}, indent=2))
+    return 0
+
+
+def add_cli(subparsers: Any) -> argparse.ArgumentParser:
+    """Register ``fusion <experiment>`` on an argparse subparsers object (handler in ``fn``)."""
+    p = subparsers.add_parser("fusion", help="navigation-fusion experiments (seeds 000, 002, 003 ch. 2, 004)")
+    p.add_argument("experiment", choices=sorted(EXPERIMENTS))
+    p.add_argument("--out", default=None, help="output folder (default runs/fusion/<experiment>)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quick", action="store_true", help="small, fast version (for tests and smoke runs)")
+    p.set_defaults(fn=cmd_fusion)
+    return p
