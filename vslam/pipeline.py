@@ -11,17 +11,19 @@ from __future__ import annotations
 
 import csv
 import logging
+import queue
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Callable, Iterator, Literal
 
 import numpy as np
 import yaml
 
 from vslam.config import from_dict, load_config, to_dict
 from vslam.data.trajectory import Trajectory, TrajectoryWriter, write_trajectory
-from vslam.data.types import Sequence
+from vslam.data.types import Frame, Sequence
 from vslam.errors import ConfigError
 from vslam.eval import EvalConfig, EvalResult, evaluate, write_report
 from vslam.paths import data_root
@@ -99,6 +101,45 @@ def open_dataset(cfg: DatasetConfig) -> Sequence:
     return open_sequence(path, kind=kind, **options)
 
 
+def prefetch(seq: Sequence, n: int, depth: int = 3) -> Iterator[Frame]:
+    """The first ``n`` frames of ``seq``, decoded on a background thread while the caller tracks.
+
+    PNG decoding (cv2.imread releases the GIL) then overlaps tracking on a second core; the order
+    and content of the frames are unchanged, and an exception in the reader is re-raised here.
+    """
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    done = object()
+
+    def produce() -> None:
+        try:
+            for k, frame in enumerate(seq):
+                if k >= n or stop.is_set():
+                    break
+                q.put(frame)
+            q.put(done)
+        except BaseException as e:  # handed to the consumer, raised in its thread
+            q.put(e)
+
+    worker = threading.Thread(target=produce, name="vslam-prefetch", daemon=True)
+    worker.start()
+    try:
+        while True:
+            item = q.get()
+            if item is done:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        while worker.is_alive():  # unblock a producer waiting on a full queue
+            try:
+                q.get_nowait()
+            except queue.Empty:
+                worker.join(0.01)
+
+
 STAT_COLUMNS = ("index", "timestamp", "tracked", "n_features", "n_matches", "n_inliers", "ms_features", "ms_depth", "ms_pose",
                 "ms_mapping", "ms_total")
 
@@ -146,9 +187,7 @@ class Pipeline:
             with open(stats_path, "w", newline="") as fstats:
                 sw = csv.writer(fstats)
                 sw.writerow(STAT_COLUMNS)
-                for k, frame in enumerate(seq):
-                    if k >= n_total:
-                        break
+                for k, frame in enumerate(prefetch(seq, n_total)):
                     t0 = time.perf_counter()
                     est: FrameEstimate = odo.track(frame)
                     ms = (time.perf_counter() - t0) * 1e3

@@ -44,6 +44,7 @@ class MappingConfig:
     tri_parallax_deg: float = 1.0
     tri_max_reproj_px: float = 2.0
     max_new_points: int = 1000  # RGB-D/stereo points created per keyframe, closest first
+    level_sigma: bool = False  # BA pixel sigma grows with the keypoint's pyramid level (scale^level)
 
 
 class LocalMapper:
@@ -189,15 +190,20 @@ class LocalMapper:
         if not window:
             return
         allk = set(window) | set(fixed)
-        okf, opt, ouv, our = [], [], [], []
+        okf, opt, ouv, our, osg = [], [], [], [], []
         for pid in pts:
             for k, kp in m.points[int(pid)].observations.items():
                 if k in allk:
                     kf = m.keyframes[k]
                     okf.append(k), opt.append(int(pid)), ouv.append(kf.features.uv[kp]), our.append(kf.ur[kp])
+                    osg.append(kf.features.scale_factor ** int(kf.features.octave[kp]))
+        # ORB-SLAM weights a keypoint of pyramid level l by sigma = scale^l. Measured here it did not pay
+        # (TUM teddy 0.0074 vs 0.0065 m, KITTI 07 mono 0.393 vs 0.387 m; synthetic room 0.0173 vs 0.0189 m),
+        # so it is an option, off by default.
         problem = BAProblem({k: m.keyframes[k].T_world_cam for k in sorted(allk)}, set(fixed),
                             {int(p): m.points[int(p)].xyz for p in pts}, np.array(okf), np.array(opt),
-                            np.array(ouv).reshape(-1, 2), np.array(our, dtype=np.float64))
+                            np.array(ouv).reshape(-1, 2), np.array(our, dtype=np.float64),
+                            obs_sigma=self.backend.pixel_sigma * np.array(osg, dtype=np.float64) if self.cfg.level_sigma else None)
         res = local_bundle_adjustment(problem, self.stereo_cam, self.backend)
         for k, T in res.poses.items():
             if k not in fixed:

@@ -117,6 +117,8 @@ class Tracker:
     def refine(self, T: np.ndarray, pids: np.ndarray, kps: np.ndarray, ur: np.ndarray, feats: Features) -> tuple[np.ndarray, np.ndarray]:
         """Pose-only refinement on matched (point id, keypoint) pairs -> (T_world_cam, inliers (M,))."""
         X = self.map.points_xyz(pids)
+        # Unlike BA, pose-only refinement uses one sigma for all levels: per-level sigmas measured worse
+        # here (synthetic room RGB-D: ATE 0.063 vs 0.017 m), the chi2 gate then lets coarse outliers in.
         return optimize_pose(T, X, feats.uv[kps], ur[kps], self.stereo_cam, self.backend)
 
     def search_local(self, T: np.ndarray, pids: np.ndarray, feats: Features, tree: cKDTree, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
