@@ -12,7 +12,8 @@ from vslam.pipeline import Pipeline, PipelineConfig
 
 
 def _cfg(tmp_path, sensor="rgbd", **synth):
-    return PipelineConfig.load(None, {"dataset": {"kind": "synthetic", "sensor": sensor, "synthetic": {"n_frames": 40, **synth}},
+    # Pipeline mechanics, checked with the fast baseline tracker; tests/tracking/test_slam.py runs SLAM through it.
+    return PipelineConfig.load(None, {"tracker": "baseline", "dataset": {"kind": "synthetic", "sensor": sensor, "synthetic": {"n_frames": 40, **synth}},
                                       "output": {"dir": str(tmp_path)}})
 
 

@@ -79,7 +79,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from vslam.pipeline import Pipeline, PipelineConfig
 
     cfg = PipelineConfig.load(None, {"dataset": {"kind": "synthetic", "sensor": "rgbd", "max_frames": args.frames}, "output": {"dir": args.out}})
-    print(f"vslam {__version__} demo: built-in synthetic room (RGB-D, moving boxes), baseline frame-to-frame odometry")
+    print(f"vslam {__version__} demo: built-in synthetic room (RGB-D, 3 moving boxes, not masked yet), SLAM tracker")
     update, close = _progress_bar("demo")
     try:
         result = Pipeline(cfg).run(progress=update)
@@ -184,6 +184,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--repeat", type=int, default=1, help="runs per row (median and spread reported)")
     b.add_argument("--only", action="append", help="run only rows with this name (repeatable)")
     b.set_defaults(fn=cmd_bench)
+    from vslam.fusion.experiments import add_cli as add_fusion_cli
+
+    add_fusion_cli(sub)
     return p
 
 

@@ -55,7 +55,7 @@ class OutputConfig:
 @dataclass(frozen=True)
 class PipelineConfig:
     dataset: DatasetConfig = DatasetConfig()
-    tracker: Literal["baseline", "slam"] = "baseline"  # baseline: frame-to-frame odometry; slam: map + local BA
+    tracker: Literal["baseline", "slam"] = "slam"  # baseline: frame-to-frame odometry; slam: map + local BA
     odometry: OdometryConfig = OdometryConfig()  # settings of the baseline tracker
     slam: SlamConfig = SlamConfig()  # settings of the SLAM tracker
     eval: EvalConfig = EvalConfig()

@@ -10,7 +10,7 @@ pytestmark = pytest.mark.realdata
 
 
 def _run(seq, sensor, tmp_path, n, align="se3"):
-    cfg = PipelineConfig.load(None, {"dataset": {"sensor": sensor, "max_frames": n}, "eval": {"align": align},
+    cfg = PipelineConfig.load(None, {"tracker": "baseline", "dataset": {"sensor": sensor, "max_frames": n}, "eval": {"align": align},
                                      "output": {"dir": str(tmp_path), "report": False}})
     return Pipeline(cfg).run(seq)
 
