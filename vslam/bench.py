@@ -25,11 +25,12 @@ from vslam.errors import ConfigError
 @dataclass(frozen=True)
 class BenchRow:
     name: str
-    kind: Literal["run", "synthetic_render"] = "run"
+    kind: Literal["run", "synthetic_render", "fusion"] = "run"
     config: str = ""  # pipeline YAML, relative to the suite file's folder's parent (the repo root) or absolute
     set: tuple[str, ...] = ()  # KEY=VALUE overrides
     note: str = ""
     target: str = ""  # the number the issue asks for, shown beside ours
+    experiment: str = ""  # kind "fusion": a key of vslam.fusion.experiments.EXPERIMENTS
 
 
 @dataclass(frozen=True)
@@ -76,9 +77,23 @@ def _job_render(config: str | None, overrides: dict[str, Any], out_dir: str) -> 
     return {"frames": n, "fps": n / dt, "ms_per_frame": 1e3 * dt / n, "peak_rss_mb": _peak_rss_mb()}
 
 
+def _job_fusion(experiment: str, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
+    from vslam.fusion.experiments import EXPERIMENTS
+
+    if experiment not in EXPERIMENTS:
+        raise ConfigError(f"unknown fusion experiment {experiment!r}; known: {', '.join(sorted(EXPERIMENTS))}")
+    t0 = time.perf_counter()
+    m = EXPERIMENTS[experiment](Path(out_dir), seed=int(overrides.get("seed", 0)), quick=bool(overrides.get("quick", False)))
+    return {"headline": m.get("headline", ""), "seed_claim": m.get("seed_claim", ""), "seconds": time.perf_counter() - t0,
+            "report": str(Path(out_dir) / "report.md"), "peak_rss_mb": _peak_rss_mb()}
+
+
 def _worker(kind: str, config: str | None, overrides: dict[str, Any], out_dir: str, q: Any) -> None:
     try:
         os.environ.setdefault("OMP_NUM_THREADS", str(os.cpu_count() or 1))
+        if kind == "fusion":
+            q.put(("ok", _job_fusion(str(config), overrides, out_dir)))
+            return
         fn = _job_run if kind == "run" else _job_render
         q.put(("ok", fn(config, overrides, out_dir)))
     except BaseException as e:  # report to the parent instead of dying silently
@@ -151,6 +166,10 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
         raise ConfigError(f"{suite_path}: no row named {', '.join(only or [])}")
     results = []
     for row in rows:
+        if row.kind == "fusion":  # one seeded, deterministic run: repeating it only costs time
+            results.append((row, _aggregate([run_job("fusion", row.experiment, parse_overrides(list(row.set)),
+                                                     str(jobs_dir / row.name))])))
+            continue
         cfg = None
         if row.config:
             cfg = str(Path(row.config) if Path(row.config).is_absolute() else root / row.config)
@@ -175,6 +194,8 @@ def render_markdown(suite: BenchSuite, results: list[tuple[BenchRow, dict[str, A
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row, r in results:
+        if row.kind == "fusion":
+            continue
         if "error" in r:
             lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | | | | {row.target} |")
             continue
@@ -190,6 +211,15 @@ def render_markdown(suite: BenchSuite, results: list[tuple[BenchRow, dict[str, A
             f"| {row.name} | {tracked} | {_fmt(path, '.2f')} | {ate} | {pct} | {r.get('align', '–')} | {rpe} | {r['fps']:.1f} | {r['ms_per_frame']:.1f} | "
             f"{r['peak_rss_mb']:.0f} | {det} | {row.target} |"
         )
+    fusion = [(row, r) for row, r in results if row.kind == "fusion"]
+    if fusion:
+        lines += ["", "## Navigation fusion experiments (seeds 000, 002, 003 ch. 2, 004)", "",
+                  "| experiment | ours | seed claim | s | report |", "|---|---|---|---|---|"]
+        for row, r in fusion:
+            if "error" in r:
+                lines.append(f"| {row.name} | **failed**: {r['error']} | | | |")
+            else:
+                lines.append(f"| {row.name} | {r['headline']} | {r['seed_claim']} | {r['seconds']:.0f} | `{r['report']}` |")
     notes = [f"- **{row.name}**: {row.note}" for row, _ in results if row.note]
     if notes:
         lines += ["", "## Notes", "", *notes]
