@@ -94,3 +94,37 @@ def test_keyframe_decision():
     assert need_keyframe(300, 320, cfg.kf_max_frames, 200, 10, "rgbd", cfg)
     # too few inliers to make a useful keyframe
     assert not need_keyframe(10, 320, 5, 5, 200, "rgbd", cfg)
+
+
+def test_local_ba_window_is_held_by_enough_fixed_points():
+    # kf 0 (fixed) shares 5 points with the window; kf 1..3 share 150. Anchored by 5 points the window
+    # floats (synthetic loop room: BA slid 3 keyframes 14 cm), so kf 1 joins the fixed set; kf 3 stays free.
+    m = _map_with(4, 200)
+    pts = []
+    for i in range(5):
+        p = m.add_point(np.zeros(3), 0, i)
+        m.add_observation(p.id, 1, i)
+        pts.append(p.id)
+    for i in range(5, 155):
+        p = m.add_point(np.zeros(3), 1, i)
+        m.add_observation(p.id, 2, i)
+        m.add_observation(p.id, 3, i)
+        pts.append(p.id)
+    cam = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
+    mapper = LocalMapper(m, cam, StereoCamera(300, 300, 150, 150, 0.08), "rgbd", MappingConfig(ba_min_anchor_points=100),
+                         BackendConfig())
+    window, fixed = [1, 2, 3], [0]
+    mapper._anchor_window(3, window, fixed, np.array(pts))
+    assert window == [2, 3] and fixed == [0, 1]
+    window, fixed = [3], [0]
+    mapper._anchor_window(3, window, fixed, np.array(pts))  # never the new keyframe
+    assert window == [3] and fixed == [0]
+
+
+def test_keyframe_when_few_inliers_rgbd():
+    # fast forward motion: the reference keyframe's fresh points are not yet seen by 3 keyframes (ref_tracked
+    # small) and nothing is close; the inlier floor still asks for a keyframe (RGB-D/stereo only)
+    cfg = TrackingConfig()
+    assert need_keyframe(60, 40, 5, 0, 0, "rgbd", cfg)
+    assert not need_keyframe(60, 40, 5, 0, 0, "mono", cfg)
+    assert not need_keyframe(cfg.kf_min_inliers + 50, 40, 5, 0, 0, "rgbd", cfg)

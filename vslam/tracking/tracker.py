@@ -49,6 +49,11 @@ class TrackingConfig:
     kf_min_frames_mono: int = 3  # monocular: at least this many frames apart (stands in for ORB-SLAM's "mapping busy")
     kf_close_tracked: int = 100  # RGB-D/stereo: ... or fewer close points tracked than this
     kf_close_untracked: int = 70  # ... while this many close keypoints are not in the map
+    # RGB-D/stereo: ... or fewer inliers than this. The ratio rule alone waits too long under fast forward
+    # motion (synthetic street, 17 cm/frame, few points closer than close_baselines): the fresh points of the
+    # reference keyframe are not yet seen by min_obs keyframes, so it never fires and tracking runs dry (lost
+    # at frame 47 of 300 with 7 keyframes).
+    kf_min_inliers: int = 100
     close_baselines: float = 40.0  # "close" = depth < close_baselines x baseline (ORB-SLAM thDepth)
     min_depth_points: int = 50  # RGB-D/stereo: keypoints with depth needed to start the map / make a keyframe
     seed: int = 0
@@ -81,12 +86,14 @@ def need_keyframe(n_inliers: int, ref_tracked: int, frames_since: int, n_close_t
                   sensor: SensorKind, cfg: TrackingConfig) -> bool:
     """ORB-SLAM's rule (Tracking::NeedNewKeyFrame, local mapping always idle here): insert when
     the tracked points fall below kf_ratio of the reference keyframe's, when RGB-D/stereo runs short of
-    close tracked points while many close ones are unmapped, or when kf_max_frames have passed."""
+    close tracked points while many close ones are unmapped, or when kf_max_frames have passed. RGB-D/stereo
+    also insert when fewer than kf_min_inliers points are tracked (fast motion, few close points)."""
     close_short = sensor != "mono" and n_close_tracked < cfg.kf_close_tracked and n_close_untracked > cfg.kf_close_untracked
     if sensor == "mono" and frames_since < cfg.kf_min_frames_mono:
         return False
     ratio = cfg.kf_ratio_mono if sensor == "mono" else cfg.kf_ratio
-    weak = n_inliers < ratio * ref_tracked or close_short
+    few = sensor != "mono" and n_inliers < cfg.kf_min_inliers
+    weak = n_inliers < ratio * ref_tracked or close_short or few
     return bool((weak and n_inliers > 15) or (frames_since >= cfg.kf_max_frames and n_inliers >= cfg.min_inliers))
 
 
