@@ -52,8 +52,9 @@ class TwoViewTriangulation:
         )
 
 
-def _as_pixels(uv: np.ndarray, name: str) -> np.ndarray:
-    uv = np.asarray(uv, dtype=np.float64)
+def as_pixels(uv: np.ndarray, name: str) -> np.ndarray:
+    """(N,2) float64 contiguous pixel array (empty -> (0,2)); ValueError naming ``name`` on a wrong shape."""
+    uv = np.ascontiguousarray(uv, dtype=np.float64)
     if uv.size == 0:
         return uv.reshape(0, 2)
     if uv.ndim != 2 or uv.shape[1] != 2:
@@ -97,7 +98,7 @@ def triangulate_two_view(
     T1 = np.asarray(T_world_c1, dtype=np.float64)
     T2 = np.asarray(T_world_c2, dtype=np.float64)
     K = np.asarray(K, dtype=np.float64)
-    uv1, uv2 = _as_pixels(uv1, "uv1"), _as_pixels(uv2, "uv2")
+    uv1, uv2 = as_pixels(uv1, "uv1"), as_pixels(uv2, "uv2")
     if uv1.shape != uv2.shape:
         raise ValueError(f"uv1 and uv2 must have the same shape, got {uv1.shape} and {uv2.shape}")
     K_inv = np.linalg.inv(K)

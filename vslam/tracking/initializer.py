@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from vslam.geometry.se3 import inv_T, make_T
-from vslam.geometry.triangulation import TwoViewTriangulation, triangulate_two_view
+from vslam.geometry.triangulation import TwoViewTriangulation, as_pixels, triangulate_two_view
 
 log = logging.getLogger(__name__)
 
@@ -89,15 +89,6 @@ def _usac(cfg: InitConfig) -> cv2.UsacParams:
     p.randomGeneratorState = cfg.seed
     p.isParallel = False
     return p
-
-
-def _pixels(uv: np.ndarray, name: str) -> np.ndarray:
-    uv = np.ascontiguousarray(uv, dtype=np.float64)
-    if uv.size == 0:
-        return uv.reshape(0, 2)
-    if uv.ndim != 2 or uv.shape[1] != 2:
-        raise ValueError(f"{name} must have shape (N, 2), got {uv.shape}")
-    return uv
 
 
 def _homog(uv: np.ndarray) -> np.ndarray:
@@ -218,7 +209,7 @@ def initialize_two_view(uv_ref: np.ndarray, uv_cur: np.ndarray, K: np.ndarray, c
     logged at DEBUG, when: too few matches, no model, ambiguous motion, too few good points, or
     median parallax < cfg.min_parallax_deg (pure rotation, tiny baseline).
     """
-    uv_ref, uv_cur = _pixels(uv_ref, "uv_ref"), _pixels(uv_cur, "uv_cur")
+    uv_ref, uv_cur = as_pixels(uv_ref, "uv_ref"), as_pixels(uv_cur, "uv_cur")
     K = np.asarray(K, dtype=np.float64)
     if uv_ref.shape != uv_cur.shape:
         raise ValueError(f"uv_ref and uv_cur differ in shape: {uv_ref.shape} vs {uv_cur.shape}")
