@@ -105,7 +105,9 @@ def test_local_ba_flags_gross_outliers(stereo_frac):
     poses, pts, prob = S.full_scene(rng, stereo_frac=stereo_frac)
     prob.fixed = {0, 1}
     bad = S.add_outliers(rng, prob.obs_uv, prob.obs_ur, 0.10, px=30.0)
-    r = local_bundle_adjustment(S.perturb(rng, prob), S.CAM)
+    # a far-off start (5 cm points, 2 cm / 1 deg poses) with outliers needs more LM iterations than the
+    # defaults, which are tuned for SLAM's tracked initial guesses
+    r = local_bundle_adjustment(S.perturb(rng, prob), S.CAM, BackendConfig(max_iterations=10, refine_iterations=5))
     assert np.mean(~r.inliers[bad]) >= 0.95
     assert np.mean(~r.inliers[~bad]) <= 0.02
     # a point left with < 2 inlier views is culled by the caller (ORB-SLAM); judge the others

@@ -73,9 +73,12 @@ class BackendConfig:
     huber_k: float = 1.345  # Huber threshold in sigmas (robust loss on every visual factor)
     chi2_mono: float = 5.991  # 95 % of chi2(2): an observation above this after BA is an outlier
     chi2_stereo: float = 7.815  # 95 % of chi2(3)
-    max_iterations: int = 10  # Levenberg-Marquardt iterations of local BA
+    # LM iterations of local BA. Each keyframe's BA starts from tracked poses, so few are needed: 6 + 3
+    # instead of 10 + 5 measured TUM teddy 0.0060 vs 0.0065 m, KITTI 07 mono 0.379 vs 0.387 m, synthetic room
+    # and EuRoC unchanged, mapping time per frame ~15 % lower.
+    max_iterations: int = 6
     rgbd_virtual_baseline: float = 0.08  # metres; RGB-D depth as a virtual stereo pair (ORB-SLAM2 uses bf/fx ~ 0.08)
-    refine_iterations: int = 5  # LM iterations of local BA's second round, outliers removed (ORB-SLAM2: 10)
+    refine_iterations: int = 3  # LM iterations of local BA's second round, outliers removed (ORB-SLAM2: 10)
     pose_rounds: int = 4  # pose-only: optimise / classify rounds (ORB-SLAM2: 4)
     pose_iterations: int = 10  # pose-only: LM iterations per round (ORB-SLAM2: 10)
 
