@@ -144,9 +144,12 @@ class Tracker:
         ok = int(inl.sum()) >= self.cfg.min_inliers
         return TrackResult(T, ok, point_ids, n_matches, int(inl.sum()), method)
 
-    def _finish_local(self, T: np.ndarray, feats: Features, ur: np.ndarray, ref_kf: int, tree: cKDTree, method: str) -> TrackResult:
-        """Second round: the whole local map from a good pose, tight radius, pose-only refinement."""
-        _, pids = self.map.local_map(ref_kf, self.cfg.local_keyframes)
+    def _finish_local(self, T: np.ndarray, feats: Features, ur: np.ndarray, ref_kf: int, tree: cKDTree, method: str,
+                      pids: np.ndarray | None = None) -> TrackResult:
+        """Second round: the whole local map (``pids``, else that of ``ref_kf``) from a good pose, tight radius,
+        pose-only refinement."""
+        if pids is None:
+            _, pids = self.map.local_map(ref_kf, self.cfg.local_keyframes)
         mp, mk, vis = self.search_local(T, pids, feats, tree, self.cfg.radius_refine_px)
         if len(mp) < self.cfg.min_inliers:
             return TrackResult(T, False, np.full(len(feats), -1, np.int64), len(mp), 0, method)
@@ -166,7 +169,7 @@ class Tracker:
         T, inl = self.pnp(feats.uv[mk], self.map.points_xyz(mp))
         if T is None:  # the LO-RANSAC pose is already refined on its inliers; the back end refines in round two
             return None
-        return self._finish_local(T, feats, ur, ref_kf, tree, "projection")
+        return self._finish_local(T, feats, ur, ref_kf, tree, "projection", pids)  # the map has not changed since
 
     def track_keyframe(self, feats: Features, ur: np.ndarray, kf_id: int, tree: cKDTree, method: str = "reference") -> TrackResult | None:
         """Descriptor matching against one keyframe's map points, PnP, then the local-map round."""
