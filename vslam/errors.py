@@ -26,3 +26,7 @@ class ConfigError(VslamError):
 
 class EvalError(VslamError):
     """Trajectories cannot be evaluated (no overlap, unknown format, too few poses)."""
+
+
+class InertialError(VslamError):
+    """IMU data cannot serve the request (samples do not cover a window, too few samples, a moving 'still' window)."""
