@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from vslam.bench import load_suite, run_bench
+import json
+
+from vslam.bench import load_sidecar, load_suite, run_bench, stage_times
 from vslam.errors import ConfigError
 
 
@@ -24,7 +26,8 @@ def test_bench_writes_rows_with_machine_and_determinism(tmp_path):
     out = run_bench(suite, tmp_path / "BENCH.md", repeat=2, jobs_dir=tmp_path / "runs")
     text = out.read_text()
     assert "Machine:" in text and "logical cores" in text
-    rows = {ln.split("|")[1].strip(): ln for ln in text.splitlines() if ln.startswith("| tiny")}
+    main, stages = text.split("## Time per stage")
+    rows = {ln.split("|")[1].strip(): ln for ln in main.splitlines() if ln.startswith("| tiny")}
     assert {"tiny-rgbd", "tiny-render"} <= set(rows)
     cells = [c.strip() for c in rows["tiny-rgbd"].split("|")]
     assert cells[2] == "12 (12)"  # frames (tracked)
@@ -35,6 +38,30 @@ def test_bench_writes_rows_with_machine_and_determinism(tmp_path):
     fusion = next(ln for ln in text.splitlines() if ln.startswith("| tiny-fusion"))
     assert "max posterior at 0.9 s: N=3" in fusion and "seed 002" in fusion
     assert (tmp_path / "runs" / "tiny-fusion" / "report.md").is_file()
+    # per-stage table (issue 3): one row per SLAM run, features/pose/mapping and the BA sub-stage
+    stage_head = next(ln for ln in stages.splitlines() if ln.startswith("| row | features"))
+    heads = [c.strip() for c in stage_head.split("|")[1:-1]]
+    assert {"features", "depth", "pose", "mapping", "map: ba", "keyframes", "total"} <= set(heads)
+    stage = next(ln for ln in stages.splitlines() if ln.startswith("| tiny-rgbd"))
+    vals = dict(zip(heads, [c.strip() for c in stage.split("|")[1:-1]]))
+    assert 0 < float(vals["features"]) < float(vals["total"])
+    assert float(vals["map: ba"]) > 0 and int(vals["keyframes"]) >= 1
+    assert not any(ln.startswith("| tiny-render") for ln in stages.splitlines())
+
+    # --only re-measures one row and keeps the others from the sidecar, word for word
+    side = json.loads((tmp_path / "BENCH.json").read_text())
+    assert set(side["rows"]) == {"tiny-rgbd", "tiny-render", "tiny-fusion"}
+    side["rows"]["tiny-rgbd"]["measured"] = "2000-01-01 00:00 UTC"  # an earlier session
+    (tmp_path / "BENCH.json").write_text(json.dumps(side))
+    run_bench(suite, tmp_path / "BENCH.md", repeat=1, only=["tiny-render"], jobs_dir=tmp_path / "runs2")
+    text2 = out.read_text()
+    rows2 = {ln.split("|")[1].strip(): ln for ln in text2.split("## Time per stage")[0].splitlines() if ln.startswith("| tiny")}
+    assert rows2["tiny-rgbd"] == rows["tiny-rgbd"] and fusion in text2.splitlines()
+    assert "- 2000-01-01 00:00 UTC, 2 run(s) per row: tiny-rgbd" in text2
+    assert "1 run(s) per row: tiny-render" in text2
+    assert not (tmp_path / "runs2" / "tiny-rgbd-0").exists()
+    with pytest.raises(ConfigError, match="no row named nope"):
+        run_bench(suite, tmp_path / "BENCH.md", only=["nope"], jobs_dir=tmp_path / "runs3")
 
 
 def test_bad_suite(tmp_path):
@@ -45,3 +72,31 @@ def test_bad_suite(tmp_path):
     s.write_text("rows: []\n")
     with pytest.raises(ConfigError, match="no rows"):
         load_suite(s)
+
+
+def test_stage_times_from_stats_csv(tmp_path):
+    p = tmp_path / "stats.csv"
+    p.write_text(
+        "index,tracked,ms_features,ms_depth,ms_pose,ms_mapping,ms_map_create,ms_map_ba,ms_map_loop,ms_total\n"
+        "0,1,10,1,5,40,10,30,,56\n"
+        "1,1,12,1,7,0.5,,,,20.5\n"
+        "2,1,14,1,9,0.5,,,,24.5\n"
+        "3,1,16,1,11,80,20,60,,108\n"
+    )
+    st = stage_times(p)
+    assert st["keyframes"] == 2
+    s = st["stages"]
+    assert s["features"] == 13 and s["pose"] == 8 and s["total"] == 40.25  # medians per frame
+    assert s["mapping"] == 30.25 and s["map_ba"] == 22.5 and s["map_create"] == 7.5  # means per frame (blank = 0)
+    assert s["mapping_per_kf"] == 60  # median over the two keyframes
+    assert "map_loop" not in s  # a stage that never ran is not a 0 ms stage
+    assert stage_times(tmp_path / "missing.csv") == {}
+
+
+def test_unreadable_sidecar_is_ignored(tmp_path, caplog):
+    p = tmp_path / "B.json"
+    p.write_text("{not json")
+    assert load_sidecar(p) == {}
+    p.write_text('{"version": 99, "rows": {}}')
+    assert load_sidecar(p) == {}
+    assert "ignoring the earlier rows" in caplog.text

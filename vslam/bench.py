@@ -3,11 +3,21 @@
 Each run happens in a fresh spawned process so its peak memory is its own
 and one row cannot warm caches for the next. Timings are only compared as
 ratios inside one BENCHMARKS.md (same machine, same run).
+
+The measured numbers live in a machine-readable sidecar next to the Markdown
+(``BENCHMARKS.json`` beside ``BENCHMARKS.md``): ``--only NAME`` re-measures
+those rows, keeps every other row from the sidecar and re-renders the whole
+file, with the date each row was measured. Parsing the Markdown back would
+break with every change of its layout; the JSON does not.
 """
 
 from __future__ import annotations
 
+import csv
 import datetime as _dt
+import json
+import logging
+import math
 import multiprocessing as mp
 import os
 import platform
@@ -21,11 +31,17 @@ from typing import Any, Literal
 from vslam.config import deep_merge, from_dict, load_yaml, parse_overrides
 from vslam.errors import ConfigError
 
+log = logging.getLogger(__name__)
+
+SIDECAR_VERSION = 1
+# stats.csv columns shown in the per-stage table, in pipeline order; other ms_* columns follow
+STAGES = ("features", "depth", "pose", "mapping", "map_create", "map_fuse_cull", "map_ba", "map_loop")
+PER_FRAME = ("features", "depth", "pose", "total")  # run on every frame: median ms/frame
 
 @dataclass(frozen=True)
 class BenchRow:
     name: str
-    kind: Literal["run", "synthetic_render", "fusion"] = "run"
+    kind: Literal["run", "synthetic_render", "fusion", "imu_preint"] = "run"
     config: str = ""  # pipeline YAML, relative to the suite file's folder's parent (the repo root) or absolute
     set: tuple[str, ...] = ()  # KEY=VALUE overrides
     note: str = ""
@@ -53,14 +69,60 @@ def _job_run(config: str | None, overrides: dict[str, Any], out_dir: str) -> dic
     if res.eval is not None:
         row["ate_rmse"] = res.eval.ate.translation.rmse
         row["align"] = res.eval.alignment.method
+        if res.eval.alignment.method == "sim3":  # issue 8: the fitted scale says how metric a mono(-inertial) run is
+            row["align"] += f" (s={res.eval.alignment.s:.4f})"
         row["path_m"] = res.eval.gt_length_m
         first = res.eval.rpe[0] if res.eval.rpe else None
         if first is not None:
             row["rpe_t"] = first.translation.rmse
             row["rpe_r"] = first.rotation_deg.rmse
             row["rpe_delta"] = first.label
+    row.update(stage_times(Path(out_dir) / "stats.csv"))
     row["peak_rss_mb"] = _peak_rss_mb()
     return row
+
+
+def stage_times(stats_csv: Path) -> dict[str, Any]:
+    """Per-stage cost of one run from its stats.csv -> {"stages": {stage: ms}, "keyframes": K}.
+
+    Stages that run on every frame (features, depth, pose, total) give their median ms/frame. Mapping
+    runs on keyframes only, so its median per frame is 0: mapping and its sub-stages give the mean ms
+    per frame (the amortised cost), and ``mapping_per_kf`` the median ms per keyframe (rows where a
+    mapping sub-stage was timed). Empty when the file is missing.
+    """
+    if not stats_csv.is_file():
+        return {}
+    with open(stats_csv, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return {}
+    cols = [c[3:] for c in rows[0] if c.startswith("ms_")]
+
+    def values(col: str, fill: float | None) -> list[float]:
+        out = []
+        for r in rows:
+            v = r.get("ms_" + col, "")
+            if v not in ("", None):
+                out.append(float(v))
+            elif fill is not None:
+                out.append(fill)
+        return out
+
+    stages: dict[str, float] = {}
+    for col in cols:
+        if not values(col, None):
+            continue  # never ran (e.g. loop closing off)
+        if col in PER_FRAME:
+            vals = values(col, None)
+            if vals:
+                stages[col] = statistics.median(vals)
+        else:
+            stages[col] = statistics.fmean(values(col, 0.0))  # blank = the stage did not run on that frame
+    kf_col = next((c for c in cols if c.startswith("map_")), None)
+    kf_rows = [r for r in rows if kf_col and r.get("ms_" + kf_col, "") != ""]
+    if kf_rows and "mapping" in cols:
+        stages["mapping_per_kf"] = statistics.median(float(r["ms_mapping"]) for r in kf_rows)
+    return {"stages": stages, "keyframes": len(kf_rows)}
 
 
 def _job_render(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
@@ -88,11 +150,28 @@ def _job_fusion(experiment: str, overrides: dict[str, Any], out_dir: str) -> dic
             "report": str(Path(out_dir) / "report.md"), "peak_rss_mb": _peak_rss_mb()}
 
 
+def _job_imu_preint(overrides: dict[str, Any]) -> dict[str, Any]:
+    """Issue 8: real-IMU preintegration error/NEES from ground-truth states, and the static window (``set``:
+    data=<folder under $VSLAM_DATA>, lengths=[...], static_window_s, noise_scale, align_spans=[...])."""
+    from vslam.inertial.evaluate import evaluate_euroc_imu
+    from vslam.paths import data_root
+
+    t0 = time.perf_counter()
+    out = evaluate_euroc_imu(data_root() / str(overrides.get("data", "euroc/V1_01_easy_micro")),
+                             tuple(float(x) for x in overrides.get("lengths", (0.5, 1.0, 2.0))),
+                             float(overrides.get("static_window_s", 4.0)), float(overrides.get("noise_scale", 1.0)),
+                             tuple(float(x) for x in overrides.get("align_spans", (3.0, 5.0, 10.0))))
+    return {**out, "seconds": time.perf_counter() - t0, "peak_rss_mb": _peak_rss_mb()}
+
+
 def _worker(kind: str, config: str | None, overrides: dict[str, Any], out_dir: str, q: Any) -> None:
     try:
         os.environ.setdefault("OMP_NUM_THREADS", str(os.cpu_count() or 1))
         if kind == "fusion":
             q.put(("ok", _job_fusion(str(config), overrides, out_dir)))
+            return
+        if kind == "imu_preint":
+            q.put(("ok", _job_imu_preint(overrides)))
             return
         fn = _job_run if kind == "run" else _job_render
         q.put(("ok", fn(config, overrides, out_dir)))
@@ -144,6 +223,10 @@ def _aggregate(runs: list[dict[str, Any]]) -> dict[str, Any]:
         if vals:
             agg[key] = statistics.median(vals)
             agg[key + "_spread"] = max(vals) - min(vals)
+    stage_runs = [r["stages"] for r in ok if r.get("stages")]
+    if stage_runs:
+        names = list(dict.fromkeys(k for st in stage_runs for k in st))
+        agg["stages"] = {k: statistics.median(st[k] for st in stage_runs if k in st) for k in names}
     agg["n_runs"] = len(ok)
     agg["identical"] = len({round(r.get("ate_rmse", 0.0), 12) for r in ok}) == 1
     return agg
@@ -157,44 +240,105 @@ def load_suite(path: str | Path) -> BenchSuite:
     return suite
 
 
+def sidecar_path(output: Path) -> Path:
+    """BENCHMARKS.md -> BENCHMARKS.json (the measured rows, machine-readable)."""
+    return output.with_suffix(".json")
+
+
+def load_sidecar(path: Path) -> dict[str, dict[str, Any]]:
+    """Rows of an earlier bench run: name -> {"result", "measured", "repeat", "machine"}; {} when absent.
+
+    A sidecar that cannot be read is not trusted: its rows are dropped with a warning, never guessed.
+    """
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+        if data.get("version") != SIDECAR_VERSION or not isinstance(data.get("rows"), dict):
+            raise ValueError(f"unsupported layout (version {data.get('version')!r})")
+        return dict(data["rows"])
+    except (ValueError, AttributeError) as e:
+        log.warning("%s: ignoring the earlier rows (%s)", path, e)
+        return {}
+
+
+def _json_safe(v: Any) -> Any:
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    if isinstance(v, dict):
+        return {k: _json_safe(x) for k, x in v.items()}
+    if hasattr(v, "item"):  # numpy scalar
+        return _json_safe(v.item())
+    return v
+
+
 def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[str] | None = None,
               jobs_dir: Path = Path("runs/bench")) -> Path:
+    """Run the suite's rows (or those named in ``only``), merge with the rows kept in the sidecar
+    ``output.with_suffix('.json')`` and rewrite ``output`` with every row of the suite measured so far."""
     suite = load_suite(suite_path)
     root = Path(suite_path).resolve().parent.parent
+    names = {r.name for r in suite.rows}
+    unknown = [n for n in only or [] if n not in names]
+    if unknown:
+        raise ConfigError(f"{suite_path}: no row named {', '.join(unknown)}; rows: {', '.join(sorted(names))}")
     rows = [r for r in suite.rows if not only or r.name in only]
-    if not rows:
-        raise ConfigError(f"{suite_path}: no row named {', '.join(only or [])}")
-    results = []
+    side = sidecar_path(output)
+    kept = load_sidecar(side)
+    now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    machine = machine_info()
     for row in rows:
         if row.kind == "fusion":  # one seeded, deterministic run: repeating it only costs time
-            results.append((row, _aggregate([run_job("fusion", row.experiment, parse_overrides(list(row.set)),
-                                                     str(jobs_dir / row.name))])))
-            continue
-        cfg = None
-        if row.config:
-            cfg = str(Path(row.config) if Path(row.config).is_absolute() else root / row.config)
-        over = parse_overrides(list(row.set))
-        runs = [run_job(row.kind, cfg, over, str(jobs_dir / f"{row.name}-{i}")) for i in range(max(1, repeat))]
-        results.append((row, _aggregate(runs)))
-    output.write_text(render_markdown(suite, results, repeat))
+            result = _aggregate([run_job("fusion", row.experiment, parse_overrides(list(row.set)), str(jobs_dir / row.name))])
+            n = 1
+        else:
+            cfg = None
+            if row.config:
+                cfg = str(Path(row.config) if Path(row.config).is_absolute() else root / row.config)
+            over = parse_overrides(list(row.set))
+            n = max(1, repeat)
+            result = _aggregate([run_job(row.kind, cfg, over, str(jobs_dir / f"{row.name}-{i}")) for i in range(n)])
+        kept[row.name] = {"result": _json_safe(result), "measured": now, "repeat": n, "machine": machine}
+    dropped = sorted(set(kept) - names)
+    if dropped:
+        log.info("%s: rows no longer in the suite dropped: %s", side, ", ".join(dropped))
+    entries = [(r, kept[r.name]) for r in suite.rows if r.name in kept]
+    side.write_text(json.dumps({"version": SIDECAR_VERSION, "suite": str(suite_path),
+                                "rows": {r.name: e for r, e in entries}}, indent=1, default=float) + "\n")
+    output.write_text(render_markdown(suite, entries, now, machine))
     return output
 
 
-def render_markdown(suite: BenchSuite, results: list[tuple[BenchRow, dict[str, Any]]], repeat: int) -> str:
-    now = _dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
+def _measured_lines(entries: list[tuple[BenchRow, dict[str, Any]]], machine: str) -> list[str]:
+    """One line per (date, repeat, machine) group: which rows were measured when."""
+    groups: dict[tuple[str, int, str], list[str]] = {}
+    for row, e in entries:
+        groups.setdefault((e["measured"], int(e["repeat"]), e.get("machine", "")), []).append(row.name)
+    lines = []
+    for (when, rep, mach), names in sorted(groups.items(), reverse=True):
+        other = f" on {mach}" if mach and mach != machine else ""
+        lines.append(f"- {when}, {rep} run(s) per row{other}: {', '.join(names)}")
+    return lines
+
+
+def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, Any]]], now: str, machine: str) -> str:
+    """The whole BENCHMARKS.md from sidecar entries ({"result", "measured", "repeat", "machine"})."""
     lines = [
         f"# {suite.title}",
         "",
         f"Written by `vslam bench` on {now}.",
-        f"Machine: {machine_info()}.",
-        f"Each row: {repeat} run(s) in a fresh process; numbers are medians, ± is max−min over the runs.",
-        "Timings are comparable only within this file (same machine, same session).",
+        f"Machine: {machine}.",
+        "Each row: its run(s) in a fresh process; numbers are medians, ± is max−min over the runs.",
+        "Timings are comparable only between rows measured together (same machine, same session). Measured:",
+        "",
+        *_measured_lines(entries, machine),
         "",
         "| row | frames (tracked) | path m | ATE RMSE m | ATE % of path | align | RPE trans / rot | frames/s | ms/frame | peak RSS MB | deterministic | target |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for row, r in results:
-        if row.kind == "fusion":
+    for row, e in entries:
+        r, repeat = e["result"], int(e["repeat"])
+        if row.kind in ("fusion", "imu_preint"):  # own tables below
             continue
         if "error" in r:
             lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | | | | {row.target} |")
@@ -211,7 +355,8 @@ def render_markdown(suite: BenchSuite, results: list[tuple[BenchRow, dict[str, A
             f"| {row.name} | {tracked} | {_fmt(path, '.2f')} | {ate} | {pct} | {r.get('align', '–')} | {rpe} | {r['fps']:.1f} | {r['ms_per_frame']:.1f} | "
             f"{r['peak_rss_mb']:.0f} | {det} | {row.target} |"
         )
-    fusion = [(row, r) for row, r in results if row.kind == "fusion"]
+    lines += _stage_table(entries)
+    fusion = [(row, e["result"]) for row, e in entries if row.kind == "fusion"]
     if fusion:
         lines += ["", "## Navigation fusion experiments (seeds 000, 002, 003 ch. 2, 004)", "",
                   "| experiment | ours | seed claim | s | report |", "|---|---|---|---|---|"]
@@ -220,8 +365,73 @@ def render_markdown(suite: BenchSuite, results: list[tuple[BenchRow, dict[str, A
                 lines.append(f"| {row.name} | **failed**: {r['error']} | | | |")
             else:
                 lines.append(f"| {row.name} | {r['headline']} | {r['seed_claim']} | {r['seconds']:.0f} | `{r['report']}` |")
-    notes = [f"- **{row.name}**: {row.note}" for row, _ in results if row.note]
+    lines += _imu_table([(row, e["result"]) for row, e in entries if row.kind == "imu_preint"])
+    notes = [f"- **{row.name}**: {row.note}" for row, _ in entries if row.note]
     if notes:
         lines += ["", "## Notes", "", *notes]
-    lines += ["", "Reproduce: `vslam bench --suite configs/bench.yaml" + (f" --repeat {repeat}" if repeat > 1 else "") + "`.", ""]
+    repeats = {int(e["repeat"]) for row, e in entries if row.kind != "fusion"}
+    rep = max(repeats) if repeats else 1
+    lines += ["", "Reproduce: `vslam bench --suite configs/bench.yaml" + (f" --repeat {rep}" if rep > 1 else "") +
+              "` (one row: `--only NAME`; the other rows are kept from BENCHMARKS.json).", ""]
     return "\n".join(lines)
+
+
+def _imu_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
+    """Issue 8 real-IMU numbers: one line per window length, then the static-window line per row."""
+    if not rows:
+        return []
+    lines = ["", "## IMU preintegration on real data (issue 8)", "",
+             "Windows start at ground-truth states (pose, velocity, biases); error of the predicted end pose; NEES of "
+             "rotation + position against the pim's covariance (6 dof: consistent ≈ 6).", "",
+             "| row | window s | windows | position RMSE m | rotation RMSE ° | predicted σ_p m | NEES mean (median) "
+             "| NEES rot / pos | noise × for NEES 6 | target |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for row, r in rows:
+        if "error" in r:
+            lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | | {row.target} |")
+            continue
+        for w in r["windows"]:
+            lines.append(f"| {row.name} | {w['length_s']:g} | {w['windows']} | {w['pos_rmse_m']:.4f} | {w['rot_rmse_deg']:.3f} "
+                         f"| {w['sigma_pos_median_m']:.4f} | {w['nees_mean']:.0f} ({w['nees_median']:.0f}) "
+                         f"| {w['nees_rot_mean']:.0f} / {w['nees_pos_mean']:.0f} | {w['noise_inflation_for_consistency']:.1f} | {row.target} |")
+    for row, r in rows:
+        if "error" not in r:
+            st = r["static"]
+            lines.append("")
+            lines.append(f"{row.name}, static window {st['window_s']:g} s (still: {'yes' if st['still'] else 'no'}): gravity "
+                         f"direction {st['gravity_dir_err_deg']:.2f}° from ground truth ({st['gravity_dir_err_gt_accel_bias_deg']:.2f}° "
+                         f"with the ground-truth accel bias as prior); gyro bias error {st['gyro_bias_err_rad_s']:.4f} rad/s "
+                         f"(ground-truth bias {st['gyro_bias_gt_norm_rad_s']:.4f} rad/s).")
+    aligned = [(row, r) for row, r in rows if "error" not in r and r.get("alignment")]
+    if aligned:
+        lines += ["", "Visual-inertial alignment (`vi_align`) on ground-truth camera poses hidden behind a similarity "
+                  "(scale 3.7, tilted frame), keyframes every 0.25 s, zero starting biases:", "",
+                  "| row | span s | windows | scale error % median / max | gravity error ° median / max | gyro bias error rad/s |",
+                  "|---|---|---|---|---|---|"]
+        for row, r in aligned:
+            for a in r["alignment"]:
+                lines.append(f"| {row.name} | {a['span_s']:g} | {a['windows']} | {a['scale_err_median_pct']:.2f} / "
+                             f"{a['scale_err_max_pct']:.2f} | {a['gravity_err_median_deg']:.2f} / {a['gravity_err_max_deg']:.2f} "
+                             f"| {a['gyro_bias_err_median_rad_s']:.4f} |")
+    return lines
+
+
+def _stage_table(entries: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
+    """Per-stage milliseconds (issue 3: features, matching, pose, BA) of the rows whose runs wrote stats.csv."""
+    timed = [(row, e["result"]["stages"], e["result"].get("keyframes")) for row, e in entries
+             if row.kind == "run" and "error" not in e["result"] and e["result"].get("stages")]
+    if not timed:
+        return []
+    seen = list(dict.fromkeys(k for _, st, _ in timed for k in st))
+    cols = [c for c in STAGES if c in seen] + [c for c in seen if c not in STAGES and c not in ("total", "mapping_per_kf")]
+    head = [c.replace("map_", "map: ") for c in cols]
+    lines = ["", "## Time per stage (ms)", "",
+             "features, depth (stereo matching / depth lookup), pose (projection matching + PnP + pose-only refinement) "
+             "and total: median ms per frame. Mapping and its sub-stages (point creation, fusion + culling, local BA) "
+             "run on keyframes only: mean ms per frame (amortised), and median ms per keyframe.", "",
+             "| row | " + " | ".join(head) + " | mapping ms/keyframe | keyframes | total |",
+             "|---|" + "---|" * (len(cols) + 3)]
+    for row, st, kfs in timed:
+        cells = [_fmt(st.get(c), ".1f") for c in cols]
+        lines.append(f"| {row.name} | " + " | ".join(cells) + f" | {_fmt(st.get('mapping_per_kf'), '.1f')} | "
+                     f"{'–' if kfs is None else kfs} | {_fmt(st.get('total'), '.1f')} |")
+    return lines

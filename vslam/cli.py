@@ -187,6 +187,14 @@ def build_parser() -> argparse.ArgumentParser:
     from vslam.fusion.experiments import add_cli as add_fusion_cli
 
     add_fusion_cli(sub)
+    # `vslam train <model>`: each model's trainer adds its own subcommand from its own module
+    train_sub = sub.add_parser("train", help="train a network (detector, ...)").add_subparsers(dest="model", required=True)
+    from vslam.dynamic.train_cli import add_cli as add_detector_train_cli
+
+    add_detector_train_cli(train_sub)
+    from vslam.dynamic.composite import add_cli as add_make_dynamic_cli
+
+    add_make_dynamic_cli(sub)
     return p
 
 

@@ -140,12 +140,18 @@ def prefetch(seq: Sequence, n: int, depth: int = 3) -> Iterator[Frame]:
                 worker.join(0.01)
 
 
-STAT_COLUMNS = ("index", "timestamp", "tracked", "n_features", "n_matches", "n_inliers", "ms_features", "ms_depth", "ms_pose",
-                "ms_mapping", "ms_total")
+# status / uncertain / pose_std_*: see FrameEstimate (issue 3: faulty frames are kept and marked uncertain;
+# a frame whose timestamp does not increase gets status "duplicate_time" and no trajectory line).
+# ms_map_*: the local-mapping sub-stages, blank on frames that made no keyframe.
+STAT_COLUMNS = ("index", "timestamp", "tracked", "status", "uncertain", "pose_std_m", "pose_std_deg", "n_features",
+                "n_matches", "n_inliers", "ms_features", "ms_depth", "ms_pose", "ms_mapping", "ms_map_create",
+                "ms_map_fuse_cull", "ms_map_ba", "ms_map_loop", "ms_total")
 
 
 def _fmt_stat(col: str, v: object) -> str:
     if isinstance(v, float):
+        if col.startswith("pose_std"):
+            return "nan" if not np.isfinite(v) else f"{v:.6g}"
         return f"{v:.6f}" if col == "timestamp" else f"{v:.3f}"
     return str(v)
 
@@ -177,6 +183,8 @@ class Pipeline:
             odo = FrameToFrameOdometry(seq.calibration, cfg.dataset.sensor, cfg.odometry)
         n_total = len(seq) if cfg.dataset.max_frames <= 0 else min(len(seq), cfg.dataset.max_frames)
         stamps: list[float] = []
+        indices: list[int] = []
+        backfill: dict[int, np.ndarray] = {}  # frame index -> pose measured late (FrameEstimate.backfill)
         poses: list[np.ndarray] = []
         tracked: list[bool] = []
         stats: list[dict[str, float]] = []
@@ -188,18 +196,35 @@ class Pipeline:
                 sw = csv.writer(fstats)
                 sw.writerow(STAT_COLUMNS)
                 for k, frame in enumerate(prefetch(seq, n_total)):
+                    if stamps and not frame.timestamp > stamps[-1]:
+                        # A second image at the same instant would give a trajectory no reader accepts
+                        # (time must increase); it is not tracked, only recorded in stats.csv.
+                        log.warning("frame %d: timestamp %.6f does not increase (previous %.6f); frame skipped",
+                                    frame.index, frame.timestamp, stamps[-1])
+                        row = {"index": frame.index, "timestamp": frame.timestamp, "tracked": 0,
+                               "status": "duplicate_time", "uncertain": 1, "pose_std_m": float("nan"),
+                               "pose_std_deg": float("nan")}
+                        sw.writerow([_fmt_stat(c, row.get(c, "")) for c in STAT_COLUMNS])
+                        fstats.flush()
+                        stats.append(row)
+                        continue
                     t0 = time.perf_counter()
                     est: FrameEstimate = odo.track(frame)
                     ms = (time.perf_counter() - t0) * 1e3
                     for w in writers.values():
                         w.write(frame.timestamp, est.T_world_cam)
+                    std_m, std_deg = est.pose_std()
                     row = {"index": frame.index, "timestamp": frame.timestamp, "tracked": int(est.tracked),
+                           "status": est.status_name, "uncertain": int(est.uncertain), "pose_std_m": std_m,
+                           "pose_std_deg": std_deg,
                            "n_features": est.n_features, "n_matches": est.n_matches, "n_inliers": est.n_inliers,
                            **{f"ms_{k2}": v for k2, v in est.times_ms.items()}, "ms_total": ms}
                     sw.writerow([_fmt_stat(c, row.get(c, "")) for c in STAT_COLUMNS])
                     fstats.flush()
                     stats.append(row)
                     stamps.append(frame.timestamp)
+                    indices.append(frame.index)
+                    backfill.update(est.backfill)
                     poses.append(est.T_world_cam)
                     tracked.append(est.tracked)
                     if progress:
@@ -209,6 +234,19 @@ class Pipeline:
                 w.close()
         seconds = time.perf_counter() - t_start
         paths.update(odo.finish(out))  # keyframes and map (SLAM); nothing for the baseline
+        loop = getattr(odo, "loop", None)
+        if loop is not None and loop.stats.corrected and len(poses):  # a loop moved keyframes: frames follow them
+            poses = list(loop.final_poses())
+            paths["trajectory_final"] = write_trajectory(out / "trajectory_final.tum.txt",
+                                                         Trajectory(np.array(stamps), np.array(poses)), "tum")
+        if backfill and len(poses):  # monocular frames before the map, localised once it existed
+            at = {idx: i for i, idx in enumerate(indices)}
+            for idx, T in backfill.items():
+                if idx in at:
+                    poses[at[idx]], tracked[at[idx]] = T, True
+            log.info("%d frames before the monocular initialisation localised afterwards", len(backfill))
+            paths["trajectory_final"] = write_trajectory(out / "trajectory_final.tum.txt",
+                                                         Trajectory(np.array(stamps), np.array(poses)), "tum")
         traj = Trajectory(np.array(stamps), np.array(poses).reshape(-1, 4, 4))
         result = RunResult(traj, np.array(tracked, bool), stats, None, paths, seconds)
         gt = seq.groundtruth()

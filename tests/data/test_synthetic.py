@@ -18,6 +18,7 @@ from vslam.data.synthetic.motion import GRAVITY
 from vslam.data.synthetic.render import Renderer
 from vslam.data.synthetic.scene import CLEARANCE, Mover
 from vslam.data.types import PinholeCamera
+from vslam.errors import ConfigError
 from vslam.geometry.se3 import inv_T, make_T, so3_exp, so3_log
 
 logger = logging.getLogger(__name__)
@@ -289,6 +290,24 @@ def test_blackout_frames_are_black() -> None:
         assert f.T_world_cam is not None and len(f.imu) > 0, "ground truth and IMU continue through a blackout"
     for f in frames[2], frames[5]:
         assert f.image.mean() > 20 and np.all(f.depth > 0)
+
+
+def test_blurred_frames_lose_detail_but_keep_depth() -> None:
+    cfg = SyntheticConfig(n_frames=4, blurs=((1, 2),), blur_sigma=4.0, **SMALL)
+    sharp, blurred = SyntheticSequence(dataclasses.replace(cfg, blurs=()), sensor="stereo"), SyntheticSequence(cfg, sensor="stereo")
+    for i in range(4):
+        a, b = sharp.frame(i), blurred.frame(i)
+        np.testing.assert_array_equal(a.depth, b.depth)
+        if i in (1, 2):  # high-frequency energy (Laplacian variance) drops by an order of magnitude
+            lap = [cv2.Laplacian(cv2.cvtColor(x, cv2.COLOR_BGR2GRAY), cv2.CV_64F).var() for x in (a.image, b.image, b.right)]
+            assert lap[1] < 0.1 * lap[0] and lap[2] < 0.1 * lap[0]
+            np.testing.assert_array_equal(b.image, cv2.GaussianBlur(a.image, (0, 0), 4.0))
+        else:
+            np.testing.assert_array_equal(a.image, b.image)
+    with pytest.raises(ConfigError, match="blur_sigma"):
+        SyntheticConfig(blur_sigma=0.0)
+    with pytest.raises(ConfigError, match="blurs"):
+        SyntheticConfig(blurs=((-1, 2),))
 
 
 def test_lighting_change_varies_brightness_over_time() -> None:

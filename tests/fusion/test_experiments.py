@@ -10,7 +10,7 @@ import pytest
 from vslam.fusion.experiments import EXPERIMENTS, add_cli
 
 
-@pytest.mark.parametrize("name", sorted(EXPERIMENTS))
+@pytest.mark.parametrize("name", sorted(set(EXPERIMENTS) - {"validity_vslam"}))  # runs vslam: test_exp_vslam.py
 def test_quick_experiment_writes_report(name, tmp_path):
     m = EXPERIMENTS[name](tmp_path, seed=0, quick=True)
     assert "seed_claim" in m and "ours" in m

@@ -35,5 +35,6 @@ def test_kitti_mono_60_frames(kitti_root, tmp_path):
     slam = {"features": {"n_features": 2000}, "init": {"h_ratio": 0.9, "planar_inlier_ratio": 1.01}}
     res = _run(open_sequence(kitti_root / "sequences" / "07", sensor="mono"), "mono", tmp_path, 60, "sim3", slam)
     first = int(np.argmax(res.tracked))
-    assert first <= 15 and res.tracked[first:].all()
-    assert res.eval.ate.translation.rmse < 0.6  # measured 0.30 m (Sim3; the 10 frames before init are identity)
+    assert first <= 15 and res.tracked[first:].all()  # frames before the initialisation are back-filled: first = 0
+    # measured 0.325 m (Sim3, back-filled frames 1-9; 0.304 m with them as identity placeholders)
+    assert res.eval.ate.translation.rmse < 0.6

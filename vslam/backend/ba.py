@@ -20,6 +20,8 @@ Local BA (``local_bundle_adjustment``), after ORB-SLAM2 ``Optimizer::LocalBundle
    ``factors.py``). If no observed keyframe is fixed, the one with the lowest id is held instead (gauge:
    6 DOF; for mono-only windows the scale then stays free, only held near the initial guess by LM damping --
    pass at least two fixed keyframes for mono).
+   With ``BAProblem.lines`` (issue 6) the window's line observations join both LM rounds as one
+   structureless factor (``line_ba`` / ``line_window``); ``BAResult.lines`` / ``line_inliers`` come back.
 3. *Optimise*: Levenberg-Marquardt, ``max_iterations`` (lambda settings in ``factors.lm_params``).
 4. *Classify*: chi2 test on each observation's unrobust whitened squared error (chi2_mono / chi2_stereo).
 5. *Refine*: the outlier factors are dropped and LM runs ``refine_iterations`` more (ORB-SLAM2: 10) from
@@ -63,6 +65,7 @@ import gtsam
 import numpy as np
 
 from vslam.backend import factors as fx
+from vslam.backend.line_ba import LineProblem, camera_K_L, factors_within, line_chi2, line_estimates, line_terms
 from vslam.backend.pose_only import refine_pose
 from vslam.backend.window import DenseWindow, dense_window
 
@@ -114,6 +117,7 @@ class BAProblem:
     obs_uv: np.ndarray
     obs_ur: np.ndarray
     obs_sigma: np.ndarray | None = None
+    lines: LineProblem | None = None  # line landmarks (issue 6, ``vslam.backend.line_ba``), None: points only
 
 
 @dataclass
@@ -125,6 +129,8 @@ class BAResult:
     initial_error: float = float("nan")
     final_error: float = float("nan")
     ms: dict[str, float] = field(default_factory=dict)
+    lines: dict[int, np.ndarray] = field(default_factory=dict)  # optimised Plücker lines (|d| = 1) of the graph
+    line_inliers: np.ndarray | None = None  # (M_lines,) bool, chi2 test at the estimate; None without lines
 
 
 def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: BackendConfig = BackendConfig()) -> BAResult:
@@ -148,7 +154,12 @@ def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: Backe
     anchors = _anchors(problem.fixed, win.kf_ids[used_k].tolist())
     holds = [builder.hold(fx.X(k), problem.poses[k]) for k in anchors]
     values = _initial_values(win.Twc0[used_k], win.P0[used_p], win.kf_ids[used_k], win.pt_ids[used_p])
-    graph = _graph(facs + holds)
+    line_facs, line_ids = [], []
+    if problem.lines is not None:  # line factors join both LM rounds (their Huber kernel is per observation)
+        line_facs, line_values, line_ids = line_terms(problem.lines, set(win.kf_ids[used_k].tolist()),
+                                                      camera_K_L(camera), cfg.huber_k)
+        values.insert(line_values)
+    graph = _graph(facs + holds + line_facs)
     t1 = time.perf_counter()
 
     est, iters = _levenberg_marquardt(graph, values, cfg.max_iterations)
@@ -158,8 +169,8 @@ def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: Backe
     t3 = time.perf_counter()
 
     if cfg.refine_iterations > 0 and keep.any():  # ORB-SLAM2: drop the outlier factors, optimise again
-        graph2 = _graph(list(itertools.compress(facs, keep.tolist())) + holds)
         start = _without(est, _orphans(win, idx[keep], used_k, used_p, anchors))
+        graph2 = _graph(list(itertools.compress(facs, keep.tolist())) + holds + factors_within(line_facs, start))
         est2, more = _levenberg_marquardt(graph2, start, cfg.refine_iterations)
         est = gtsam.Values(est)
         est.update(est2)  # a variable that lost all its factors keeps its first-round value
@@ -177,6 +188,10 @@ def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: Backe
     result.iterations = iters
     result.initial_error = float(graph.error(values))
     result.final_error = float(graph.error(est))
+    if problem.lines is not None:
+        result.lines = line_estimates(est, line_ids)
+        poses = {int(k): Twc[i] for i, k in enumerate(win.kf_ids.tolist())}
+        result.line_inliers = line_chi2(problem.lines, poses, result.lines, camera_K_L(camera)) <= problem.lines.chi2
     t5 = time.perf_counter()
     result.ms = {
         "build": 1e3 * (t1 - t0),

@@ -31,7 +31,9 @@ class FactorBuilder:
     Noise models are cached per (dimension, sigma), so per-observation sigmas (pyramid levels) stay cheap.
     """
 
-    def __init__(self, camera, huber_k: float):
+    def __init__(self, camera, huber_k: float, T_body_cam: np.ndarray | None = None):
+        # T_body_cam (4,4): poses X(k) are then T_world_body and the camera sits at body_P_sensor (VI BA)
+        self._bPs = None if T_body_cam is None else pose3(T_body_cam)
         self.K_mono = gtsam.Cal3_S2(camera.fx, camera.fy, 0.0, camera.cx, camera.cy)
         b = max(camera.baseline, 1e-12)  # unused when baseline == 0 (every factor is then mono)
         self.K_stereo = gtsam.Cal3_S2Stereo(camera.fx, camera.fy, 0.0, camera.cx, camera.cy, b)
@@ -60,6 +62,8 @@ class FactorBuilder:
         self, kf: np.ndarray, pt: np.ndarray, meas: np.ndarray, stereo: np.ndarray, sigma: np.ndarray
     ) -> list[gtsam.NonlinearFactor]:
         """One factor per row: kf, pt (N,) int ids; meas (N,3) (uL, v, uR); stereo (N,) bool; sigma (N,) px."""
+        if self._bPs is not None:
+            return self._factors_body(kf, pt, meas, stereo, sigma)
         out = []
         Ks, Km = self.K_stereo, self.K_mono
         for k, j, (u, v, r), st, s in zip(kf.tolist(), pt.tolist(), meas.tolist(), stereo.tolist(), sigma.tolist()):
@@ -67,6 +71,17 @@ class FactorBuilder:
                 out.append(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, r, v), self.noise(3, s), X(k), L(j), Ks))
             else:
                 out.append(gtsam.GenericProjectionFactorCal3_S2(np.array([u, v]), self.noise(2, s), X(k), L(j), Km))
+        return out
+
+    def _factors_body(self, kf, pt, meas, stereo, sigma) -> list[gtsam.NonlinearFactor]:
+        """As ``factors`` with the camera at ``body_P_sensor`` of body poses X(k)."""
+        out = []
+        bPs, Ks, Km = self._bPs, self.K_stereo, self.K_mono
+        for k, j, (u, v, r), st, s in zip(kf.tolist(), pt.tolist(), meas.tolist(), stereo.tolist(), sigma.tolist()):
+            if st:
+                out.append(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, r, v), self.noise(3, s), X(k), L(j), Ks, bPs))
+            else:
+                out.append(gtsam.GenericProjectionFactorCal3_S2(np.array([u, v]), self.noise(2, s), X(k), L(j), Km, bPs))
         return out
 
 

@@ -80,6 +80,43 @@ def refine_pose(
     return inv_T(T_cw), inliers
 
 
+def pose_covariance(
+    T_world_cam: np.ndarray,
+    pts_world: np.ndarray,
+    uv: np.ndarray,
+    ur: np.ndarray,
+    camera,
+    cfg,
+    sigma: np.ndarray | float | None = None,
+) -> np.ndarray:
+    """(6,6) first-order covariance (J^T J)^-1 of a refined pose from its inlier observations.
+
+    Same arguments as ``refine_pose`` (pass the inliers only). Order (w, v) of the left perturbation
+    T_cam_world <- [Exp(w) | v] T_cam_world: rotation rad, translation m, camera axes; the camera centre
+    moves by -R_cw^T v, so sqrt(tr Sigma_vv) is its position std in metres. Residuals are whitened by the
+    pixel sigma, so this assumes exact map points: a lower bound that still grows with few, clustered or
+    depth-less observations. All-inf when fewer than 3 usable observations or the system is singular.
+    """
+    pts = np.asarray(pts_world, dtype=np.float64).reshape(-1, 3)
+    meas, stereo = measurement_matrix(uv, ur)
+    n = pts.shape[0]
+    sig = np.broadcast_to(np.asarray(cfg.pixel_sigma if sigma is None else sigma, dtype=np.float64), (n,))
+    valid = np.isfinite(pts).all(axis=1) & np.isfinite(meas[:, :2]).all(axis=1) & (sig > 0)
+    if camera.baseline <= 0:
+        stereo = np.zeros(n, dtype=bool)
+    unknown = np.full((6, 6), np.inf)
+    if valid.sum() < _MIN_OBS:
+        return unknown
+    T_cw = inv_T(np.asarray(T_world_cam, dtype=np.float64))
+    _, H, _ = _linearize(T_cw[:3, :3], T_cw[:3, 3], np.ascontiguousarray(pts[valid].T), np.ascontiguousarray(meas[valid].T),
+                         stereo[valid].astype(np.float64), 1.0 / sig[valid], camera, None)
+    try:
+        cov = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return unknown
+    return cov if np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0) else unknown
+
+
 def _classify(T_cw, P, Z, S, sig, thr, camera) -> np.ndarray:
     chi2, _ = whitened_sq_errors(transform_points(T_cw, P), Z, S, sig, camera)
     return chi2 <= thr

@@ -13,7 +13,7 @@ from scipy import stats
 from vslam.config import to_dict
 from vslam.fusion.exp_common import md_table, pyplot, write_outputs
 from vslam.fusion.ins_gnss import InsGnssConfig, improvement, monte_carlo, rms, run_filter, simulate_run
-from vslam.fusion.simulate import GnssConfig, TrajectoryConfig, drifting_vo_track
+from vslam.fusion.simulate import GnssConfig, TrajectoryConfig, Truth, drifting_vo_track
 from vslam.fusion.validity import (
     ModeEstimate, choose_modes, decision_rates, interp_track, quantile_factor, vio_modes,
 )
@@ -100,15 +100,34 @@ def _decision_table(innov: np.ndarray, labels: np.ndarray) -> list[dict[str, flo
     return out
 
 
+def align_to_nav(vo_t: np.ndarray, vo_p: np.ndarray, nav_t: np.ndarray, nav_pos: np.ndarray, use: np.ndarray,
+                 with_scale: bool) -> tuple[np.ndarray, int]:
+    """A VO track in its own frame -> navigation axes, by Umeyama (Sim3 when ``with_scale``: monocular) to the
+    GNSS/INS solution at the epochs ``use`` inside the track's span. The caller passes the epochs with a fix
+    (>= 4 satellites) before GNSS is blocked: what a vehicle knows at hand-over, no ground truth.
+    -> (positions (T, 3), epochs used)."""
+    from evo.core.geometry import umeyama_alignment
+
+    sel = np.flatnonzero(use & (nav_t >= vo_t[0]) & (nav_t <= vo_t[-1]))
+    if len(sel) < 3:
+        raise ValueError("fewer than 3 valid GNSS/INS epochs overlap the VO track before the blockage: it cannot be aligned")
+    src = interp_track(vo_t, vo_p, nav_t[sel])
+    R, t, c = umeyama_alignment(src.T, nav_pos[sel].T, with_scale)
+    return c * vo_p @ R.T + t, len(sel)
+
+
 def run_validity(out_dir: Path, seed: int = 0, quick: bool = False, vo_t: np.ndarray | None = None,
-                 vo_p: np.ndarray | None = None, vo_drift_per_m: float = 0.01) -> dict[str, Any]:
+                 vo_p: np.ndarray | None = None, vo_drift_per_m: float = 0.01, truth: Truth | None = None,
+                 cfg: InsGnssConfig | None = None, vo_align: str = "none", title: str = "",
+                 extra: list[str] | None = None) -> dict[str, Any]:
     """Limit-value validity + priority mode choice; (vo_t, vo_p) = a VO/VIO track (e.g. a vslam run),
-    synthetic drifting track by default."""
+    synthetic drifting track by default. truth: an external drive for the simulator (``truth_from_samples``)
+    instead of cfg's; vo_align "se3"/"sim3": the track is in its own frame, aligned by ``align_to_nav``."""
     plt = pyplot()
     out_dir.mkdir(parents=True, exist_ok=True)
-    cfg = validity_config(quick)
+    cfg = cfg if cfg is not None else validity_config(quick)
     rng = np.random.default_rng(seed)
-    truth, f, w, gnss = simulate_run(cfg, rng)
+    truth, f, w, gnss = simulate_run(cfg, rng, truth)
     nav = run_filter("mcc-srckf", truth, f, w, gnss, cfg, np.random.default_rng(seed + 1))
     table = _decision_table(nav.pr_innov, gnss.is_outlier)
     if vo_t is None or vo_p is None:
@@ -117,14 +136,22 @@ def run_validity(out_dir: Path, seed: int = 0, quick: bool = False, vo_t: np.nda
     nis_ok = np.where(m > 0, nav.nis * np.maximum(m, 1) <= stats.chi2.ppf(0.9973, np.maximum(m, 1)), True)
     gnss_mode = ModeEstimate("GNSS+INS", nav.pos, nav.pos_cov, nis_ok)
     anchor_ok = (nav.visible >= 4) & nis_ok
+    n_align = 0
+    if vo_align != "none":
+        dark = np.flatnonzero(nav.visible == 0)
+        before = nav.t < (nav.t[dark[0]] if len(dark) else np.inf)
+        vo_p, n_align = align_to_nav(vo_t, vo_p, nav.t, nav.pos, (nav.visible >= 4) & before, vo_align == "sim3")
     vio, vio_gnss = vio_modes(nav.t, vo_t, vo_p, nav.pos, nav.pos_cov, anchor_ok, vo_drift_per_m, 0.05)
     modes = [gnss_mode, vio, vio_gnss]
     idx, fused = choose_modes(modes, hold=3)
     p_true = interp_track(truth.t, truth.p, nav.t)
     blocked = nav.visible == 0
     errs = {mm.name: mm.pos - p_true for mm in modes} | {"r_opt": fused - p_true}
-    rms_all = {k: rms(e) for k, e in errs.items()}
-    rms_blk = {k: rms(e[blocked]) if blocked.any() else float("nan") for k, e in errs.items()}
+    # a visual mode counts only where its track exists (a vslam run may start after the drive)
+    span = {"VIO": vio.valid, "VIO+GNSS": vio_gnss.valid}
+    rms_all = {k: rms(e[span[k]]) if k in span else rms(e) for k, e in errs.items()}
+    rms_blk = {k: rms(e[blocked & span.get(k, True)]) if (blocked & span.get(k, True)).any() else float("nan")
+               for k, e in errs.items()}
     share = {mm.name: float(np.mean(idx[blocked] == i)) if blocked.any() else 0.0 for i, mm in enumerate(modes)}
     fig, ax = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
     for k, e in errs.items():
@@ -150,6 +177,7 @@ def run_validity(out_dir: Path, seed: int = 0, quick: bool = False, vo_t: np.nda
     headline = (f"3-sigma limit: false alarm {three['false_alarm']:.3f}, missed {three['missed']:.3f}; "
                 f"GNSS blocked: " + ", ".join(f"{k} {v:.1f} m" for k, v in rms_blk.items()))
     metrics = {"seed_claim": SEED_000, "headline": headline, "ours": {"three_sigma": three, "decision_table": table,
-               "rms_all": rms_all, "rms_gnss_blocked": rms_blk, "mode_share_blocked": share}}
-    return write_outputs(out_dir, "Validity by limit values and priority mode choice", metrics, text,
-                         ["decision_rates.png", "mode_choice.png"], to_dict(cfg))
+               "rms_all": rms_all, "rms_gnss_blocked": rms_blk, "mode_share_blocked": share,
+               "blocked_epochs": int(blocked.sum()), "vo_align_epochs": n_align}}
+    return write_outputs(out_dir, title or "Validity by limit values and priority mode choice", metrics,
+                         (extra or []) + text, ["decision_rates.png", "mode_choice.png"], to_dict(cfg))

@@ -12,14 +12,18 @@ import json
 from pathlib import Path
 from typing import Any, Callable
 
+from vslam.errors import ConfigError
+
 from vslam.fusion.exp_group import run_identification, run_multi_vehicle
 from vslam.fusion.exp_nav import run_ins_gnss, run_validity
+from vslam.fusion.exp_vslam import run_validity_vslam
 
 Experiment = Callable[..., dict[str, Any]]
 
 EXPERIMENTS: dict[str, Experiment] = {
     "ins_gnss": run_ins_gnss,
     "validity": run_validity,
+    "validity_vslam": run_validity_vslam,  # the same mode choice, VIO channel = a real vslam trajectory
     "identification": run_identification,
     "multi_vehicle": run_multi_vehicle,
 }
@@ -27,7 +31,12 @@ EXPERIMENTS: dict[str, Experiment] = {
 
 def cmd_fusion(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path("runs") / "fusion" / args.experiment
-    metrics = EXPERIMENTS[args.experiment](out, seed=args.seed, quick=args.quick)
+    extra = {}
+    if args.vo_run:
+        if args.experiment != "validity_vslam":
+            raise ConfigError("--vo-run only applies to the validity_vslam experiment")
+        extra["run_dir"] = args.vo_run
+    metrics = EXPERIMENTS[args.experiment](out, seed=args.seed, quick=args.quick, **extra)
     print(json.dumps({"seed_claim": metrics.get("seed_claim"), "report": str(out / "report.md")}, indent=2))
     return 0
 
@@ -39,5 +48,8 @@ def add_cli(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="output folder (default runs/fusion/<experiment>)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true", help="small, fast version (for tests and smoke runs)")
+    p.add_argument("--vo-run", default=None, metavar="DIR",
+                   help="validity_vslam: a `vslam run` output folder whose trajectory is the VIO channel "
+                        "(default: run vslam on KITTI 07 mono, or the synthetic street without the data)")
     p.set_defaults(fn=cmd_fusion)
     return p

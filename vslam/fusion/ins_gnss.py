@@ -25,8 +25,9 @@ import numpy as np
 from vslam.fusion.filters import AdaptiveRobustConfig, Belief, make_filter
 from vslam.fusion.simulate import (
     GnssConfig, GnssData, ImuConfig, TrajectoryConfig, Truth, mechanize_step, simulate_gnss, simulate_imu,
-    simulate_truth, skew, so3_exp,
+    simulate_truth,
 )
+from vslam.geometry.se3 import skew, so3_exp
 
 log = logging.getLogger(__name__)
 
@@ -199,10 +200,13 @@ def run_filter(name: str, truth: Truth, imu_f: np.ndarray, imu_w: np.ndarray, gn
                      np.array(nis), np.array(vis), innov)
 
 
-def simulate_run(cfg: InsGnssConfig, rng: np.random.Generator):
-    """One Monte-Carlo draw of truth, IMU and GNSS (shared by all filters of that run)."""
-    truth = simulate_truth(cfg.trajectory)
-    f, w, _, _ = simulate_imu(truth, cfg.imu, cfg.trajectory.dt_imu, rng)
+def simulate_run(cfg: InsGnssConfig, rng: np.random.Generator, truth: Truth | None = None):
+    """One Monte-Carlo draw of truth, IMU and GNSS (shared by all filters of that run).
+
+    truth: an external trajectory (``simulate.truth_from_samples``, t from 0) instead of cfg.trajectory's drive.
+    """
+    truth = simulate_truth(cfg.trajectory) if truth is None else truth
+    f, w, _, _ = simulate_imu(truth, cfg.imu, float(truth.t[1] - truth.t[0]), rng)
     return truth, f, w, simulate_gnss(truth, cfg.gnss, rng)
 
 

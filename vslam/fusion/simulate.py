@@ -16,20 +16,9 @@ from typing import Literal
 
 import numpy as np
 
+from vslam.geometry.se3 import so3_exp, so3_log
+
 G_N = np.array([0.0, -9.80665, 0.0])  # gravity in (N, U, E), m/s^2
-
-
-def skew(w: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rodrigues: exp([w x]) for a rotation vector w (rad)."""
-    th = float(np.linalg.norm(w))
-    K = skew(w)
-    if th < 1e-9:
-        return np.eye(3) + K + 0.5 * K @ K
-    return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * K @ K
 
 
 def mechanize_step(p: np.ndarray, v: np.ndarray, C: np.ndarray, f_b: np.ndarray, w_b: np.ndarray,
@@ -83,6 +72,35 @@ def simulate_truth(cfg: TrajectoryConfig) -> Truth:
         p, v, C = mechanize_step(p, v, C, f_b, w_b, cfg.dt_imu)
         P.append(p), V.append(v), Cs.append(C), F.append(f_b), W.append(w_b)
     return Truth(t, np.array(P), np.array(V), np.array(Cs), np.array(F), np.array(W))
+
+
+def truth_from_samples(t: np.ndarray, p: np.ndarray, C: np.ndarray, dt: float) -> Truth:
+    """An external trajectory -> ``Truth`` at the IMU rate, with the IMU inputs that reproduce it.
+
+    t (K,) s increasing; p (K, 3) navigation-frame positions, m; C (K, 3, 3) C_b^n. Positions are
+    interpolated by a cubic spline (velocity = its derivative), attitudes by slerp, on t - t[0] in steps
+    of dt; f_b and w_b are the finite differences that ``mechanize_step`` integrates back, and the truth
+    is that integration (so the INS sees no model mismatch, as with ``simulate_truth``). It stays within
+    millimetres of the spline at dt = 0.01 s.
+    """
+    from scipy.interpolate import CubicSpline
+    from scipy.spatial.transform import Rotation, Slerp
+
+    t = np.asarray(t, dtype=np.float64) - float(t[0])
+    if len(t) < 4 or np.any(np.diff(t) <= 0):
+        raise ValueError("an external trajectory needs >= 4 samples with increasing time")
+    ti = np.arange(int(np.floor(t[-1] / dt)) + 1) * dt
+    spline = CubicSpline(t, np.asarray(p, dtype=np.float64), axis=0)
+    v_ref = spline(ti, 1)
+    Cs = Slerp(t, Rotation.from_matrix(np.asarray(C, dtype=np.float64)))(ti).as_matrix()
+    pk, vk, Ck = spline(ti[0]), v_ref[0], Cs[0]
+    P, V, Cl, F, W = [pk], [vk], [Ck], [], []
+    for k in range(len(ti) - 1):
+        w_b = so3_log(Ck.T @ Cs[k + 1]) / dt  # lands exactly on the next sampled attitude
+        f_b = Ck.T @ ((v_ref[k + 1] - vk) / dt - G_N)  # lands exactly on the next spline velocity
+        pk, vk, Ck = mechanize_step(pk, vk, Ck, f_b, w_b, dt)
+        P.append(pk), V.append(vk), Cl.append(Ck), F.append(f_b), W.append(w_b)
+    return Truth(ti, np.array(P), np.array(V), np.array(Cl), np.array(F), np.array(W))
 
 
 @dataclass(frozen=True)

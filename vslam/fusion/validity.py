@@ -102,22 +102,28 @@ def interp_track(t_src: np.ndarray, p_src: np.ndarray, t: np.ndarray) -> np.ndar
 def vio_modes(t: np.ndarray, vo_t: np.ndarray, vo_p: np.ndarray, gnss_pos: np.ndarray, gnss_cov: np.ndarray,
               gnss_valid: np.ndarray, drift_per_m: float, noise_m: float
               ) -> tuple[ModeEstimate, ModeEstimate]:
-    """The visual modes from a VO/VIO track (timestamps, positions), e.g. a vslam trajectory.
+    """The visual modes from a VO/VIO track (timestamps, positions in the navigation axes), e.g. a vslam trajectory.
 
-    VIO: the track aligned at the first epoch, variance (drift * distance)^2 + noise^2.
-    VIO+GNSS: the track re-anchored at the last *valid* GNSS/INS epoch (its position and
-    covariance), plus the VO drift variance accumulated since that anchor.
+    VIO: the track anchored at its first epoch e0 (the first navigation epoch inside the track's time span)
+    to the GNSS/INS position there, variance (drift * distance since e0)^2 + noise^2.
+    VIO+GNSS: the track re-anchored at the last *valid* GNSS/INS epoch (its position and covariance), plus
+    the VO drift variance accumulated since that anchor. Both modes are invalid outside the track's span.
     """
+    inside = (t >= vo_t[0]) & (t <= vo_t[-1])
+    if not inside.any():
+        raise ValueError("the VO track does not overlap the navigation epochs")
+    e0 = int(np.argmax(inside))
     vo = interp_track(vo_t, vo_p, t)
-    vo = vo - vo[0] + gnss_pos[0]
-    dist = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(vo, axis=0), axis=1))]
+    vo = vo - vo[e0] + gnss_pos[e0]
+    step = np.linalg.norm(np.diff(vo, axis=0), axis=1) * inside[1:]
+    dist = np.r_[0.0, np.cumsum(step)]
     var_vio = (drift_per_m * dist) ** 2 + noise_m**2
-    vio = ModeEstimate("VIO", vo, var_vio[:, None, None] * np.eye(3), np.ones(len(t), bool))
+    vio = ModeEstimate("VIO", vo, var_vio[:, None, None] * np.eye(3), inside.copy())
     pos, cov = np.empty_like(vo), np.empty((len(t), 3, 3))
-    a = 0
+    a = e0
     for e in range(len(t)):
-        if gnss_valid[e]:
+        if gnss_valid[e] and e >= e0:
             a = e
         pos[e] = gnss_pos[a] + vo[e] - vo[a]
         cov[e] = gnss_cov[a] + ((drift_per_m * (dist[e] - dist[a])) ** 2 + noise_m**2) * np.eye(3)
-    return vio, ModeEstimate("VIO+GNSS", pos, cov, np.ones(len(t), bool))
+    return vio, ModeEstimate("VIO+GNSS", pos, cov, inside.copy())

@@ -60,6 +60,10 @@ class LocalMapper:
                  cfg: MappingConfig, backend: BackendConfig):
         self.map, self.cam, self.stereo_cam, self.sensor, self.cfg, self.backend = slam_map, cam, stereo_cam, sensor, cfg, backend
         self.recent: list[int] = []  # point ids still on probation (culling)
+        # visual-inertial mode (``vslam.tracking.vio.Vio``): adds its IMU chain to the BA window and solves it
+        self.inertial = None
+        # line landmarks (``vslam.mapping.line_map.LineSlam``, issue 6) join local BA when set
+        self.lines = None
 
     def process(self, kf: KeyFrame, tracked_ids: np.ndarray) -> dict[str, float]:
         """Insert keyframe ``kf`` whose keypoints matched ``tracked_ids`` (N,) (-1 none). -> ms per step."""
@@ -193,6 +197,8 @@ class LocalMapper:
     def bundle_adjust(self, kf_id: int) -> None:
         m = self.map
         window = [kf_id] + m.covisible_keyframes(kf_id, self.cfg.min_shared, self.cfg.ba_window - 1)
+        chain = self.inertial.chain() if self.inertial is not None else []
+        window += [k for k in chain if k not in window]  # IMU-linked keyframes are optimised too
         pts = np.unique(np.concatenate([m.keyframes[k].point_ids for k in window]))
         pts = pts[pts >= 0]
         if len(pts) == 0:
@@ -227,7 +233,14 @@ class LocalMapper:
                             {int(p): m.points[int(p)].xyz for p in pts}, np.array(okf), np.array(opt),
                             np.array(ouv).reshape(-1, 2), np.array(our, dtype=np.float64),
                             obs_sigma=self.backend.pixel_sigma * np.array(osg, dtype=np.float64) if self.cfg.level_sigma else None)
-        res = local_bundle_adjustment(problem, self.stereo_cam, self.backend)
+        if self.lines is not None:
+            problem.lines = self.lines.ba_problem(sorted(allk))
+        if len(chain) >= 2:
+            res = self.inertial.solve(problem, self.stereo_cam, self.backend)
+        else:
+            res = local_bundle_adjustment(problem, self.stereo_cam, self.backend)
+        if self.lines is not None:
+            self.lines.apply_ba(problem.lines, getattr(res, "lines", {}), getattr(res, "line_inliers", None), res.poses)
         for k, T in res.poses.items():
             if k not in fixed:
                 m.keyframes[k].T_world_cam = np.asarray(T, dtype=np.float64)

@@ -23,6 +23,8 @@ class KeyFrame:
     T_world_cam: (4,4) pose of cam0. features: its keypoints. depth: (N,) metres (NaN unknown);
     ur: (N,) virtual right x in pixels (NaN for monocular measurements);
     point_ids: (N,) int64 map-point id observed by each keypoint, -1 for none.
+    velocity: (3,) world m/s of the body (IMU) and bias: (6,) accel m/s^2 then gyro rad/s -- the inertial
+    state, set once visual-inertial mode is initialised (``vslam.tracking.vio``), None otherwise.
     """
 
     id: int
@@ -33,6 +35,8 @@ class KeyFrame:
     depth: np.ndarray
     ur: np.ndarray
     point_ids: np.ndarray
+    velocity: np.ndarray | None = None
+    bias: np.ndarray | None = None
 
     @property
     def n_points(self) -> int:

@@ -48,6 +48,31 @@ class FrameEstimate:
     n_matches: int = 0
     n_inliers: int = 0
     times_ms: dict[str, float] = field(default_factory=dict)
+    # What the pose is (issue 3, faults): "tracked", "relocalised" (measured after a loss), "no_depth"
+    # (RGB-D/stereo frame measured from 2-D matches only), "predicted" (constant velocity through a
+    # failure), "uninitialised" (no map yet: placeholder pose). "" = derived from ``tracked``.
+    status: str = ""
+    # (6,6) covariance of the measured pose, (rotation rad, translation m) of the left perturbation of
+    # T_cam_world (``vslam.backend.pose_only.pose_covariance``); None when not measured or not estimated.
+    pose_cov: np.ndarray | None = None
+    # poses of earlier frames measured late, by frame index (monocular frames before the map existed)
+    backfill: dict[int, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def uncertain(self) -> bool:
+        """True when the pose was not measured from a full frame: predicted, uninitialised, no depth."""
+        return self.status_name not in ("tracked", "relocalised")
+
+    @property
+    def status_name(self) -> str:
+        return self.status or ("tracked" if self.tracked else "predicted")
+
+    def pose_std(self) -> tuple[float, float]:
+        """(position std m, rotation std deg) from ``pose_cov``: sqrt of the traces; NaN when unknown."""
+        if self.pose_cov is None or not self.tracked:
+            return float("nan"), float("nan")
+        c = self.pose_cov
+        return float(np.sqrt(np.trace(c[3:, 3:]))), float(np.degrees(np.sqrt(np.trace(c[:3, :3]))))
 
 
 @dataclass

@@ -17,15 +17,20 @@ import numpy as np
 
 from vslam.backend.ba import BackendConfig, StereoCamera
 from vslam.data.types import Calibration, Frame, SensorKind
+from vslam.dynamic import DynamicConfig, DynamicFilter
 from vslam.features import FeatureConfig, Features, make_extractor
+from vslam.features.lines import LineConfig
 from vslam.features.depth import depth_rgbd, depth_stereo, stereo_ur
 from vslam.geometry.se3 import inv_T
+from vslam.loop.config import LoopConfig
+from vslam.mapping.line_map import LineSlam
 from vslam.mapping.local_mapping import LocalMapper, MappingConfig
 from vslam.mapping.map import Map
 from vslam.tracking.baseline import FrameEstimate
 from vslam.tracking.initializer import InitConfig
 from vslam.tracking.mono_init import MonoInitializer
-from vslam.tracking.tracker import Tracker, TrackingConfig, need_keyframe
+from vslam.tracking.tracker import Tracker, TrackingConfig, TrackResult, need_keyframe
+from vslam.tracking.vio import Vio, VioConfig
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +43,16 @@ class SlamConfig:
     backend: BackendConfig = field(default_factory=BackendConfig)
     init: InitConfig = field(default_factory=InitConfig)
     init_ba: bool = True  # monocular: BA of the two initial keyframes
+    # monocular: once the map exists, localise the frames seen before it against the initial map (PnP); the
+    # pipeline writes them into trajectory_final.tum.txt (trajectory.tum.txt keeps what was known per frame)
+    backfill: bool = True
+    loop: LoopConfig = field(default_factory=LoopConfig)  # loop closing + place relocalisation (vslam.loop)
+    load_map: str = ""  # start from a map saved by save_map (vslam.loop.mapio)
+    localize_only: bool = False  # with load_map: track against the saved map, never add keyframes
+    save_map: bool = False  # finish() also writes map.vslam.npz (keyframes, points, place descriptors)
+    inertial: VioConfig = field(default_factory=VioConfig)  # visual-inertial mode (vslam.tracking.vio), off by default
+    lines: LineConfig = field(default_factory=LineConfig)  # point + Plücker-line features (issue 6), off by default
+    dynamic: DynamicConfig = field(default_factory=DynamicConfig)  # dynamic-object filtering (issue 5), off by default
 
 
 class SlamTracker:
@@ -61,12 +76,26 @@ class SlamTracker:
         self.tracker = Tracker(self.map, self.cam, self.stereo_cam, cfg.tracking, cfg.backend)
         self.mapper = LocalMapper(self.map, self.cam, self.stereo_cam, sensor, cfg.mapping, cfg.backend)
         self.mono_init = MonoInitializer(self.cam, cfg.init) if sensor == "mono" else None
+        self.vio = Vio(calibration, sensor, cfg.inertial, self.map) if cfg.inertial.enabled else None
+        self.dynamic = DynamicFilter(cfg.dynamic, self.cam) if cfg.dynamic.enabled else None
+        self.mapper.inertial = self.vio
+        self.lines = LineSlam(self.map, self.cam, self.stereo_cam, sensor, cfg.lines, cfg.backend) if cfg.lines.enabled else None
+        self.mapper.lines = self.lines
+        self._line_feats, self._line_ids = None, None
+        self.loop = None
+        if cfg.loop.enabled or cfg.load_map:
+            from vslam.loop.closing import LoopCloser, attach_saved_map
+
+            self.loop = LoopCloser(self.map, self.cam, self.stereo_cam, sensor, cfg.loop, cfg.backend, self.mapper)
+            if cfg.load_map:  # the saved map replaces the empty one everywhere it is referenced
+                attach_saved_map(self, cfg.load_map)
         self.T_world_cam = np.eye(4)
         self.velocity = np.eye(4)  # T_prev_cur of the last tracked step
         self.ref_kf: int | None = None
         self.last_kf_frame = 0
         self._prev_tracked = False
         self._n_frames = 0
+        self._pre_init: list[tuple[int, Features]] = []  # monocular: (frame index, keypoints) before the map
 
     # -- per-frame --------------------------------------------------------------
     def _depth(self, frame: Frame, feats: Features) -> np.ndarray:
@@ -80,7 +109,13 @@ class SlamTracker:
 
     def track(self, frame: Frame) -> FrameEstimate:
         t0 = time.perf_counter()
+        if self.vio is not None:
+            self.vio.add_imu(frame)
         feats = self.extractor.detect(frame.image, self.cam)
+        if self.dynamic is not None:  # issue 5: keypoints on moving objects reach neither tracking nor mapping
+            feats = feats.subset(np.flatnonzero(self.dynamic.keep(frame, feats)))
+        if self.lines is not None:
+            self._line_feats, self._line_ids = self.lines.detect(frame.image), None
         t1 = time.perf_counter()
         depth = self._depth(frame, feats)
         ur = stereo_ur(feats.uv, depth, self.cam.fx, self.baseline) if self.baseline > 0 else np.full(len(feats), np.nan)
@@ -89,11 +124,30 @@ class SlamTracker:
         ms_map: dict[str, float] = {}
         if self.ref_kf is None:
             est.tracked = self._initialize(frame, feats, depth, ur)
+            if self.dynamic is not None:
+                self.dynamic.observe(self.T_world_cam, est.tracked)
+            est.status = "tracked" if est.tracked else "uninitialised"
+            if self.mono_init is not None and self.cfg.backfill:
+                if est.tracked:
+                    est.backfill = self._backfill()
+                else:  # the initialiser retries for max_tries frames per reference: older frames share little
+                    self._pre_init = self._pre_init[-self.mono_init.max_tries:] + [(frame.index, feats)]
+            if est.tracked and self.mono_init is None:
+                est.pose_cov = np.zeros((6, 6))  # the first frame defines the world frame: exact by definition
             t3 = time.perf_counter()
         else:
             T_pred = self.T_world_cam @ self.velocity
+            T_imu = self.vio.predict(frame.timestamp) if self.vio is not None else None
+            if T_imu is not None:  # once initialised, IMU propagation replaces constant velocity
+                T_pred = T_imu
             res = self.tracker.track(feats, ur, T_pred, self.ref_kf, after_loss=not self._prev_tracked)
+            if not res.ok and self.loop is not None and self.cfg.loop.relocalise:  # place recognition over all keyframes
+                res = self.loop.relocalise(self.tracker, feats, ur, frame.image) or res
+            if res.ok and self.lines is not None:  # issue 6: the pose on points + matched map lines
+                res.T_world_cam, self._line_ids = self.lines.refine_tracked(
+                    res.T_world_cam, res.point_ids, feats, ur, self._line_feats, self.ref_kf, self.cfg.tracking.local_keyframes)
             est.n_matches, est.n_inliers, est.tracked = res.n_matches, res.n_inliers, res.ok
+            est.status, est.pose_cov = self._status(res.ok, res.method, depth), res.cov
             if res.ok:
                 if self._prev_tracked:  # a gap says nothing reliable about the per-frame motion
                     self.velocity = inv_T(self.T_world_cam) @ res.T_world_cam
@@ -102,22 +156,98 @@ class SlamTracker:
             else:
                 self.T_world_cam = T_pred
                 log.debug("frame %d not tracked; pose predicted", frame.index)
+            if self.vio is not None:
+                self.vio.update(frame.timestamp, self.T_world_cam, res.ok)
+            if self.dynamic is not None:
+                feats, depth, ur = self._drop_moving(res, feats, depth, ur)
             t3 = time.perf_counter()
-            if res.ok and self._want_keyframe(frame, res.n_inliers, res.point_ids, depth):
+            vio_kf = self.vio is not None and res.ok and self.vio.wants_keyframe(frame.timestamp)
+            if res.ok and not self.cfg.localize_only and (self._want_keyframe(frame, res.n_inliers, res.point_ids, depth) or vio_kf):
                 kf = self.map.add_keyframe(frame.index, frame.timestamp, self.T_world_cam, feats, depth, ur)
+                if self.vio is not None:
+                    self.vio.new_keyframe(kf.id)
+                if self.lines is not None:
+                    self.lines.add_keyframe(kf.id, kf.T_world_cam, self._line_feats, self._line_ids,
+                                            frame.depth if self.sensor == "rgbd" else None)
                 ms_map = self.mapper.process(kf, res.point_ids)
+                if self.vio is not None:
+                    self.vio.after_keyframe(kf.id)
+                if self.loop is not None:
+                    t_loop = time.perf_counter()
+                    self.loop.add_keyframe(kf, frame.image)
+                    ms_map["loop"] = (time.perf_counter() - t_loop) * 1e3
                 self.ref_kf, self.last_kf_frame = kf.id, self._n_frames
                 # local BA moved the keyframe: the frame's pose follows it
                 self.T_world_cam = kf.T_world_cam.copy()
+        if self.vio is not None:
+            self._init_inertial()
         t4 = time.perf_counter()
         self._prev_tracked = est.tracked
         self._n_frames += 1
         est.T_world_cam = self.T_world_cam.copy()
+        if self.loop is not None:  # for the final trajectory: frames follow their keyframe when a loop moves it
+            self.loop.record_frame(self.ref_kf, self.T_world_cam)
         est.times_ms = {"features": (t1 - t0) * 1e3, "depth": (t2 - t1) * 1e3, "pose": (t3 - t2) * 1e3,
                         "mapping": (t4 - t3) * 1e3, **{f"map_{k}": v for k, v in ms_map.items()}}
         return est
 
+    def _drop_moving(self, res: TrackResult, feats: Features, depth: np.ndarray, ur: np.ndarray) -> tuple[Features, np.ndarray, np.ndarray]:
+        """Geometric check on the tracked pose (``vslam.dynamic``): keypoints found moving leave the frame before
+        mapping, and the map points they matched are deleted so later frames cannot track against them."""
+        moving = self.dynamic.observe(self.T_world_cam, res.ok)  # type: ignore[union-attr]
+        if not moving.any():
+            return feats, depth, ur
+        for pid in res.point_ids[moving & (res.point_ids >= 0)]:
+            self.map.remove_point(int(pid))
+        keep = np.flatnonzero(~moving)
+        res.point_ids = res.point_ids[keep]
+        return feats.subset(keep), depth[keep], ur[keep]
+
+    def _init_inertial(self) -> None:
+        """Static / dynamic IMU initialisation and its refinements (``Vio.try_initialize``). Monocular, the map was
+        just scaled to metres, so the tracker's own pose state follows; after a dynamic alignment one VI BA links
+        every keyframe (ORB-SLAM3's inertial BA after its initialisation)."""
+        out = self.vio.try_initialize()  # type: ignore[union-attr]
+        if out is None:
+            return
+        T, scale = out
+        self.T_world_cam = self.vio.transform_pose(self.T_world_cam, T, scale)  # type: ignore[union-attr]
+        self.velocity = self.velocity.copy()
+        self.velocity[:3, 3] *= scale
+        if self.vio.method == "dynamic" and self.ref_kf is not None:  # type: ignore[union-attr]  # (and refinements)
+            last = max(self.map.keyframes)
+            self.vio.full_chain = True  # type: ignore[union-attr]  # one VI BA over every keyframe
+            self.mapper.bundle_adjust(last)
+            self.vio.full_chain = False  # type: ignore[union-attr]
+            self.vio.after_keyframe(last)  # type: ignore[union-attr]
+            if self.last_kf_frame == self._n_frames:  # this frame is that keyframe: follow the BA
+                self.T_world_cam = self.map.keyframes[last].T_world_cam.copy()
+
+    def _backfill(self) -> dict[int, np.ndarray]:
+        """Monocular, right after the two-view initialisation: poses of the frames seen before it, by descriptor
+        matching + PnP + pose-only refinement against the initial map (``Tracker.track_keyframe`` on the first
+        keyframe; frames between the two views see its points). -> {frame index: T_world_cam}; frames that do
+        not localise are left out."""
+        from scipy.spatial import cKDTree
+
+        kf0 = self.map.keyframes[min(self.map.keyframes)]  # the reference view defines the world
+        out = {kf0.frame_index: kf0.T_world_cam.copy()}
+        for idx, feats in self._pre_init:
+            if idx in out or len(feats) < self.cfg.tracking.min_inliers:
+                continue
+            res = self.tracker.track_keyframe(feats, np.full(len(feats), np.nan), kf0.id, cKDTree(feats.uv), "backfill")
+            if res is not None and res.ok:
+                out[idx] = res.T_world_cam
+        self._pre_init = []
+        return out
+
     def _initialize(self, frame: Frame, feats: Features, depth: np.ndarray, ur: np.ndarray) -> bool:
+        if self.cfg.load_map:  # a saved map: the first frame is placed in it by place recognition
+            res = self.loop.relocalise(self.tracker, feats, ur, frame.image)  # type: ignore[union-attr]
+            if res is None:
+                return False
+            self.T_world_cam, self.ref_kf = res.T_world_cam, self.tracker.best_reference(res.point_ids, -1)
+            return self.ref_kf >= 0
         if self.mono_init is not None:
             kfs = self.mono_init.try_initialize(self.map, frame.index, frame.timestamp, feats, self.stereo_cam,
                                                 self.cfg.backend, self.cfg.init_ba)
@@ -125,13 +255,30 @@ class SlamTracker:
                 return False
             self.ref_kf, self.last_kf_frame = kfs[1].id, self._n_frames
             self.T_world_cam = kfs[1].T_world_cam.copy()
+            if self.loop is not None:
+                for k in kfs:
+                    self.loop.add_keyframe(k)
             return True
         if int(np.isfinite(depth).sum()) < self.cfg.tracking.min_depth_points:
             return False
         kf = self.map.add_keyframe(frame.index, frame.timestamp, np.eye(4), feats, depth, ur)
+        if self.lines is not None:
+            self.lines.add_keyframe(kf.id, kf.T_world_cam, self._line_feats, None, frame.depth if self.sensor == "rgbd" else None)
         self.mapper.process(kf, np.full(len(feats), -1, np.int64))
+        if self.loop is not None:
+            self.loop.add_keyframe(kf, frame.image)
         self.ref_kf, self.last_kf_frame = kf.id, self._n_frames
         return True
+
+    def _status(self, ok: bool, method: str, depth: np.ndarray) -> str:
+        """FrameEstimate.status of a frame after initialisation (see there)."""
+        if not ok:
+            return "predicted"
+        if method == "relocalised":
+            return "relocalised"
+        if self.sensor != "mono" and int(np.isfinite(depth).sum()) < self.cfg.tracking.min_depth_points:
+            return "no_depth"  # measured from 2-D matches only: weaker, and the frame cannot become a keyframe
+        return "tracked"
 
     def _want_keyframe(self, frame: Frame, n_inliers: int, point_ids: np.ndarray, depth: np.ndarray) -> bool:
         tc = self.cfg.tracking
@@ -149,10 +296,14 @@ class SlamTracker:
 
     # -- outputs ------------------------------------------------------------------
     def map_stats(self) -> dict[str, int]:
-        return self.map.stats()
+        stats = self.map.stats()
+        if self.lines is not None:
+            stats.update(self.lines.stats())
+        return stats
 
     def finish(self, out_dir: str | Path) -> dict[str, Path]:
-        """Write ``keyframes.tum.txt`` (optimised keyframe poses) and ``map.ply`` (map points, world frame)."""
+        """Write ``keyframes.tum.txt`` (optimised keyframe poses) and ``map.ply`` (map points, world frame);
+        with lines on also ``map_lines.ply`` (line set: two end points per map line)."""
         from vslam.data.trajectory import Trajectory, write_trajectory
 
         out = Path(out_dir)
@@ -162,6 +313,14 @@ class SlamTracker:
         poses = np.array([k.T_world_cam for k in kfs]).reshape(-1, 4, 4)
         paths = {"keyframes": write_trajectory(out / "keyframes.tum.txt", Trajectory(stamps, poses), "tum")}
         paths["map"] = write_map_ply(out / "map.ply", self.map.points_xyz(np.array(list(self.map.points), np.int64)))
+        if self.lines is not None:
+            paths["lines"] = self.lines.write_ply(out / "map_lines.ply")
+        if self.loop is not None:
+            paths["loops"] = self.loop.write_stats(out / "loops.json")
+        if self.cfg.save_map:
+            from vslam.loop.closing import save_slam_map
+
+            paths["map_file"] = save_slam_map(self, out / "map.vslam.npz")
         log.info("map: %s", self.map_stats())
         return paths
 

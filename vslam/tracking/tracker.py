@@ -19,6 +19,7 @@ import pycolmap
 from scipy.spatial import cKDTree
 
 from vslam.backend.ba import BackendConfig, StereoCamera, optimize_pose
+from vslam.backend.pose_only import pose_covariance
 from vslam.data.types import PinholeCamera, SensorKind
 from vslam.features.base import Features
 from vslam.features.matching import match_by_projection, match_mutual
@@ -69,6 +70,7 @@ class TrackResult:
     n_matches: int = 0
     n_inliers: int = 0
     method: str = ""
+    cov: np.ndarray | None = None  # (6,6) pose covariance of the refinement (``pose_covariance``), None if not measured
 
 
 def project(T_world_cam: np.ndarray, X: np.ndarray, cam: PinholeCamera, min_depth: float = 1e-3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -158,7 +160,10 @@ class Tracker:
             self.map.points[int(pid)].n_visible += 1
         for pid in mp[inl]:
             self.map.points[int(pid)].n_found += 1
-        return self._result(T2, mp, mk, inl, len(feats), method, len(mp))
+        res = self._result(T2, mp, mk, inl, len(feats), method, len(mp))
+        if res.ok:  # issue 3: every measured pose says how uncertain it is (~0.1 ms)
+            res.cov = pose_covariance(T2, self.map.points_xyz(mp[inl]), feats.uv[mk[inl]], ur[mk[inl]], self.stereo_cam, self.backend)
+        return res
 
     # -- strategies -----------------------------------------------------------
     def track_projection(self, feats: Features, ur: np.ndarray, T_pred: np.ndarray, ref_kf: int, radius: float, tree: cKDTree) -> TrackResult | None:

@@ -12,11 +12,11 @@ from typing import Literal
 from vslam.data.types import ImuNoise
 from vslam.errors import ConfigError
 
-SceneKind = Literal["room", "street"]
+SceneKind = Literal["room", "street", "corridor"]
 
 # Mean camera speed per scene when ``speed`` is left unset: walking pace in a
 # room, slow driving in a street.
-DEFAULT_SPEED: dict[str, float] = {"room": 0.5, "street": 5.0}
+DEFAULT_SPEED: dict[str, float] = {"room": 0.5, "street": 5.0, "corridor": 0.8}
 
 
 @dataclass(frozen=True)
@@ -56,6 +56,10 @@ class SyntheticConfig:
     loop: bool = False
     # (start_frame, length) pairs; those frames are all zeros (image, right image and depth).
     blackouts: tuple[tuple[int, int], ...] = ()
+    # (start_frame, length) pairs; those frames' images (left and right, not depth) are Gaussian-blurred
+    # with std blur_sigma pixels (defocus / strong motion blur: few, displaced corners).
+    blurs: tuple[tuple[int, int], ...] = ()
+    blur_sigma: float = 3.0
     # Mean camera speed, m/s; None: 0.5 in the room, 5.0 in the street.
     speed: float | None = None
     # Black dots on white discs at known world points (``SyntheticSequence.landmarks``).
@@ -65,8 +69,10 @@ class SyntheticConfig:
     start_time: float = 10000.0
 
     def __post_init__(self) -> None:
-        if self.scene not in ("room", "street"):
-            raise ConfigError(f"synthetic.scene must be 'room' or 'street', got {self.scene!r}")
+        if self.scene not in ("room", "street", "corridor"):
+            raise ConfigError(f"synthetic.scene must be 'room', 'street' or 'corridor', got {self.scene!r}")
+        if self.scene == "corridor" and self.loop:
+            raise ConfigError("synthetic.loop is not available in the corridor scene (a straight walk)")
         checks = {
             "n_frames": self.n_frames >= 1,
             "fps": self.fps > 0,
@@ -78,13 +84,15 @@ class SyntheticConfig:
             "baseline": self.baseline >= 0,
             "imu_rate": self.imu_rate > 0,
             "speed": self.speed is None or self.speed > 0,
+            "blur_sigma": self.blur_sigma > 0,
         }
         for name, ok in checks.items():
             if not ok:
                 raise ConfigError(f"synthetic.{name} is out of range: {getattr(self, name)!r}")
-        for i, pair in enumerate(self.blackouts):
-            if len(pair) != 2 or pair[0] < 0 or pair[1] < 0:
-                raise ConfigError(f"synthetic.blackouts[{i}] must be (start_frame >= 0, length >= 0), got {pair!r}")
+        for name in ("blackouts", "blurs"):
+            for i, pair in enumerate(getattr(self, name)):
+                if len(pair) != 2 or pair[0] < 0 or pair[1] < 0:
+                    raise ConfigError(f"synthetic.{name}[{i}] must be (start_frame >= 0, length >= 0), got {pair!r}")
 
     @property
     def principal_point(self) -> tuple[float, float]:

@@ -204,6 +204,9 @@ def build_motion(cfg: SyntheticConfig) -> RigMotion:
         # Look between forward and outward (outward = heading - 90 deg for counter-clockwise travel):
         # walls at 1.5-6 m and sideways parallax for monocular initialisation.
         yaw_offset = -0.5
+    elif cfg.scene == "corridor":  # straight down the middle, within 15 cm of the axis
+        path = BasePath(0.0, rng.uniform(-0.15, 0.15), line_speed=cfg.mean_speed)
+        yaw_offset = 0.0
     else:
         path = _street_path(cfg, rng, distance)
         yaw_offset = 0.0

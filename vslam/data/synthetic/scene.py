@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from vslam.data.synthetic import textures
+from vslam.data.synthetic import corridor, textures
 from vslam.data.synthetic.config import ROOM_HI, ROOM_LO, STREET_HALF_WIDTH, STREET_HEIGHT, SyntheticConfig
 
 logger = logging.getLogger(__name__)
@@ -158,6 +158,14 @@ def build_scene(cfg: SyntheticConfig, cam_positions: np.ndarray, frame_tau: np.n
     CLEARANCE from them.
     """
     rng = np.random.default_rng([cfg.seed, 3])  # stream 3: scene and textures
+    if cfg.scene == "corridor":  # plain walls with long edges (corridor.py); no markers, no movers
+        lo, hi = corridor.corridor_box(cam_positions)
+        images = corridor.face_textures(rng, [_face_size(lo, hi, f) for f in range(6)], corridor.CORRIDOR_PPM)
+        atlas = _AtlasBuilder(max(4096, max(img.shape[1] for img in images) + 2 * PAD))
+        pos = np.array([atlas.add(img) for img in images])
+        if cfg.n_movers:
+            logger.warning("synthetic: the corridor scene has no movers; n_movers=%d ignored", cfg.n_movers)
+        return Scene(cfg.scene, lo, hi, corridor.CORRIDOR_PPM, atlas.build(), pos[:, 0], pos[:, 1], [], np.zeros((0, 3)))
     if cfg.scene == "room":
         lo, hi, ppm, tile = np.array(ROOM_LO), np.array(ROOM_HI), 200.0, 0.0
         kinds = _room_faces(cfg, rng)

@@ -102,6 +102,9 @@ class SyntheticSequence(Sequence):
         self._blackout = np.zeros(cfg.n_frames, bool)
         for start, length in cfg.blackouts:
             self._blackout[start : start + length] = True
+        self._blur = np.zeros(cfg.n_frames, bool)
+        for start, length in cfg.blurs:
+            self._blur[start : start + length] = True
         rng = np.random.default_rng([cfg.seed, 4])  # stream 4: lighting
         self._light = (rng.uniform(3.0, 5.0), rng.uniform(0, 2 * np.pi), rng.uniform(5.0, 8.0), rng.uniform(0, 2 * np.pi))
         logger.debug(
@@ -183,13 +186,16 @@ class SyntheticSequence(Sequence):
         tau = float(self._tau[i])
         left = self._renderer.render(T, tau, movers)
         lut = self._lighting_lut(i)
-        image = cv2.LUT(left.image, lut) if lut is not None else left.image
+        image = self._blurred(i, cv2.LUT(left.image, lut) if lut is not None else left.image)
         right_img = None
         if right:
             view = self._renderer.render(T @ self.T_cam0_cam1, tau, movers)
-            right_img = cv2.LUT(view.image, lut) if lut is not None else view.image
+            right_img = self._blurred(i, cv2.LUT(view.image, lut) if lut is not None else view.image)
         boxes, ids = boxes_from_ids(left.obj, len(self.scene.movers))
         return SyntheticRender(image, left.depth, right_img, left.obj > 0, boxes, ids, T)
+
+    def _blurred(self, i: int, image: np.ndarray) -> np.ndarray:
+        return cv2.GaussianBlur(image, (0, 0), self.cfg.blur_sigma) if self._blur[i] else image
 
     def lighting(self, i: int) -> tuple[float, float]:
         """(gain, gamma) applied to frame i: out = 255 * gain * (in / 255) ** gamma; (1, 1) without lighting_change."""

@@ -1,0 +1,201 @@
+"""Line reprojection factor (GTSAM CustomFactor) and line landmarks in local BA."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import gtsam
+import numpy as np
+import pytest
+from gtsam.symbol_shorthand import X
+
+from tests.backend import _synth as S
+from vslam.backend import line_factor as lf
+from vslam.backend.ba import BackendConfig, local_bundle_adjustment
+from vslam.backend.line_ba import LineProblem
+from vslam.geometry import plucker as pl
+from vslam.geometry.se3 import inv_T, make_T, so3_exp
+
+CAM = S.CAM
+K = np.array([[CAM.fx, 0, CAM.cx], [0, CAM.fy, CAM.cy], [0, 0, 1.0]])
+K_L = pl.line_projection_matrix(CAM.fx, CAM.fy, CAM.cx, CAM.cy)
+
+
+def _seg(T_world_cam: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    Tcw = inv_T(T_world_cam)
+    pa, pb = K @ (Tcw[:3, :3] @ a + Tcw[:3, 3]), K @ (Tcw[:3, :3] @ b + Tcw[:3, 3])
+    return np.r_[pa[:2] / pa[2], pb[:2] / pb[2]]
+
+
+def _retracted(v: gtsam.Values, key: int, dim: int, d: np.ndarray) -> gtsam.Values:
+    out = gtsam.Values(v)
+    out.erase(key)
+    if dim == 3:
+        out.insert(key, v.atRot3(key).retract(d))
+    elif dim == 1:
+        out.insert(key, v.atRot2(key).retract(d))
+    else:
+        out.insert(key, v.atPose3(key).retract(d))
+    return out
+
+
+def _factor_and_values(huber_k, noise_px=3.0):
+    rng = np.random.default_rng(0)
+    a, b = np.array([0.3, -0.2, 4.0]), np.array([-0.5, 0.6, 5.5])
+    poses = [make_T(so3_exp(rng.normal(0, 0.05, 3)), rng.normal(0, 0.3, 3)) for _ in range(3)]
+    # noisy segments (several px, beyond the Huber threshold) so the robust branch is exercised
+    segs = np.array([_seg(T, a, b) for T in poses]) + rng.normal(0, noise_px, (3, 4))
+    f = lf.line_factor(7, [0, 1, 2], segs, K_L, 1.0, huber_k)
+    v = gtsam.Values()
+    lf.insert_line(v, 7, pl.from_points(a, b))
+    for i, T in enumerate(poses):
+        v.insert(X(i), gtsam.Pose3(T))
+    return f, v
+
+
+def test_analytic_jacobian_equals_numeric():
+    f, v = _factor_and_values(None)
+    A, b = f.linearize(v).jacobian()
+    cols, h = [], 1e-6
+    for key, dim in zip(f.keys(), [3, 1, 6, 6, 6]):
+        for i in range(dim):
+            d = np.zeros(dim)
+            d[i] = h
+            cols.append((f.unwhitenedError(_retracted(v, key, dim, d)) - f.unwhitenedError(_retracted(v, key, dim, -d))) / (2 * h))
+    Jn = np.array(cols).T
+    assert np.abs(A).max() > 10.0  # a real Jacobian, pixels per radian/metre
+    assert np.abs(A - Jn).max() <= 1e-6 * np.abs(A).max()
+    np.testing.assert_allclose(-b, f.unwhitenedError(v), atol=1e-12)
+    # the pose blocks are zero outside their own observation's rows
+    assert np.all(A[2:, 4:10] == 0.0) and np.all(A[:2, 10:16] == 0.0)
+
+
+def test_huber_is_irls_per_observation_like_gtsam_robust():
+    f0, v = _factor_and_values(None)
+    fk, _ = _factor_and_values(1.345)
+    A0, b0 = f0.linearize(v).jacobian()
+    Ak, bk = fk.linearize(v).jacobian()
+    e = b0.reshape(-1, 2)
+    a = np.linalg.norm(e, axis=1)
+    assert (a > 1.345).sum() >= 2  # the robust branch is exercised
+    sw = np.repeat(np.sqrt(np.minimum(1.0, 1.345 / a)), 2)
+    np.testing.assert_allclose(Ak, sw[:, None] * A0, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(bk, sw * b0, rtol=1e-12)
+    rho = np.where(a <= 1.345, 0.5 * a * a, 1.345 * a - 0.5 * 1.345**2)
+    assert fk.error(v) == pytest.approx(rho.sum(), rel=1e-12)
+
+
+def test_error_is_end_point_distance_and_huber_cost():
+    a, b = np.array([0.0, 0.0, 5.0]), np.array([1.0, 0.0, 5.0])  # horizontal line through the principal point
+    seg = _seg(np.eye(4), a, b) + np.array([0.0, 3.0, 0.0, -4.0])  # end points 3 px below, 4 px above
+    v = gtsam.Values()
+    lf.insert_line(v, 0, pl.from_points(a, b))
+    v.insert(X(0), gtsam.Pose3())
+    e = lf.line_factor(0, [0], seg[None], K_L, 2.0, None).unwhitenedError(v)
+    np.testing.assert_allclose(np.abs(e), [1.5, 2.0], atol=1e-9)  # pixels / sigma
+    k = 1.0
+    err = lf.line_factor(0, [0], seg[None], K_L, 2.0, k).error(v)
+    assert err == pytest.approx(k * 2.5 - 0.5 * k * k, rel=1e-9)  # Huber rho of the norm 2.5
+
+
+def _line_scene(rng, n_kf=6, n_lines=40, n_pts=12):
+    poses = S.camera_path(rng, n_kf)
+    lines, segs_kf, segs_ln, segs = {}, [], [], []
+    j = 0
+    while len(lines) < n_lines:
+        a = np.array([rng.uniform(-2, 2.6), rng.uniform(-1.5, 1.5), rng.uniform(4, 9)])
+        b = a + rng.normal(0, 1.0, 3)
+        ok = all(S.visible(T, np.stack([a, b])).all() for T in poses)
+        if not ok:
+            continue
+        lines[j] = pl.normalize(pl.from_points(a, b))
+        for k, T in enumerate(poses):
+            segs_kf.append(k), segs_ln.append(j), segs.append(_seg(T, a, b))
+        j += 1
+    pts = np.column_stack([rng.uniform(-2.0, 2.6, n_pts), rng.uniform(-1.5, 1.5, n_pts), rng.uniform(4.0, 9.0, n_pts)])
+    pairs = [(k, i) for k in range(n_kf) for i in np.flatnonzero(S.visible(poses[k], pts)).tolist()]
+    prob = S._problem(rng, poses, pts, pairs, stereo_frac=0.0)  # monocular points: weak alone
+    lp = LineProblem(lines, np.array(segs_kf), np.array(segs_ln), np.array(segs))
+    return poses, prob, lp
+
+
+def _perturbed(rng, prob, lp, seg_noise_px: float, pt_noise_px: float):
+    noisy = S.perturb(rng, prob, trans_m=0.03, rot_deg=1.5, pt_m=0.05)
+    noisy.obs_uv = noisy.obs_uv + rng.normal(0, pt_noise_px, noisy.obs_uv.shape)
+    lines0 = {}
+    for j, L in lp.lines.items():  # lines moved by ~0.02 rad in each of their 4 DoF
+        U, w = pl.to_orthonormal(L)
+        lines0[j] = pl.from_orthonormal(*pl.orthonormal_retract(U, w, rng.normal(0, 0.02, 4)))
+    noisy.lines = dataclasses.replace(lp, lines=lines0, obs_seg=lp.obs_seg + rng.normal(0, seg_noise_px, lp.obs_seg.shape))
+    return noisy
+
+
+@pytest.mark.parametrize("mode", ["window", "landmark"])
+def test_ba_with_lines_recovers_perturbed_poses(mode):
+    rng = np.random.default_rng(3)
+    poses, prob, lp = _line_scene(rng, n_lines=25)
+    prob.fixed = {0, 1}
+    lp = dataclasses.replace(lp, mode=mode)
+    cfg = BackendConfig(max_iterations=15, refine_iterations=3)
+    # noiseless: poses 3 cm / 1.5 deg off, points 5 cm, lines 0.02 rad -> back to the truth
+    res = local_bundle_adjustment(_perturbed(rng, prob, lp, 0.0, 0.0), CAM, cfg)
+    for k in range(2, len(poses)):
+        t_err, r_err = S.pose_error(res.poses[k], poses[k])
+        assert t_err < 2e-4 and r_err < 2e-3, (k, t_err, r_err)
+    assert res.line_inliers is not None and res.line_inliers.all()
+    for j, L in res.lines.items():  # lines back to the truth (same line up to sign)
+        assert abs(L[3:] @ lp.lines[j][3:]) > 1 - 1e-6
+        assert np.linalg.norm(pl.closest_point(L) - pl.closest_point(lp.lines[j])) < 1e-3
+    # 0.3 px noise on both: 12 monocular points alone drift (the scale is weak); lines pin the poses
+    noisy = _perturbed(rng, prob, lp, 0.3, 0.3)
+    worst_lines = max(S.pose_error(local_bundle_adjustment(noisy, CAM, cfg).poses[k], poses[k])[0] for k in range(2, 6))
+    noisy.lines = None
+    worst_pts = max(S.pose_error(local_bundle_adjustment(noisy, CAM, cfg).poses[k], poses[k])[0] for k in range(2, 6))
+    assert worst_lines < 0.5 * worst_pts, (worst_lines, worst_pts)  # measured 0.037 vs 0.099 m (window)
+
+
+def test_ba_flags_line_outlier_and_keeps_lines_off_by_default():
+    rng = np.random.default_rng(4)
+    poses, prob, lp = _line_scene(rng, n_lines=20)
+    prob.fixed = {0, 1}
+    seg = lp.obs_seg.copy()
+    seg[5] += np.array([0.0, 25.0, 0.0, 25.0])  # one observation 25 px off
+    prob.lines = dataclasses.replace(lp, obs_seg=seg)
+    res = local_bundle_adjustment(prob, CAM, BackendConfig())
+    assert not res.line_inliers[5] and res.line_inliers.sum() == len(seg) - 1
+    prob.lines = None
+    res = local_bundle_adjustment(prob, CAM, BackendConfig())
+    assert res.line_inliers is None and res.lines == {}
+
+
+def test_window_factor_gradient_and_error_match_the_line_cost():
+    """The structureless window factor: at converged lines its error is the lines' Huber cost and J^T r is
+    the gradient of that error over the poses (null-space projection keeps the Schur complement exact)."""
+    from vslam.backend.line_window import LineWindow
+
+    rng = np.random.default_rng(5)
+    poses, _, lp = _line_scene(rng, n_lines=8)
+    segs = lp.obs_seg + rng.normal(0, 0.5, lp.obs_seg.shape)
+    win = LineWindow(np.array([lp.lines[j] for j in sorted(lp.lines)]), lp.obs_line, lp.obs_kf, segs,
+                     [X(k) for k in range(len(poses))], K_L, 1.0, 1.345, inner_iterations=1)
+    f = win.factor()
+    v = gtsam.Values()
+    for k, T in enumerate(poses):
+        v.insert(X(k), gtsam.Pose3(S.perturb_pose(rng, T, 0.005, 0.2)))
+    for _ in range(12):  # converge the lines (each linearisation re-anchors them; IRLS converges linearly)
+        f.linearize(v)
+    A, b = f.linearize(v).jacobian()
+    grad = A.T @ (-b)  # J^T r (b = -r)
+    # error = Huber cost of all observations at the re-solved lines
+    e = win.whitened_sq_errors(np.array([v.atPose3(X(k)).matrix() for k in range(len(poses))]))
+    a = np.sqrt(e)
+    assert f.error(v) == pytest.approx(np.sum(np.where(a <= 1.345, 0.5 * e, 1.345 * a - 0.5 * 1.345**2)), rel=1e-6)
+    h, num = 1e-6, []
+    for k in range(len(poses)):
+        for i in range(6):
+            d = np.zeros(6)
+            d[i] = h
+            num.append((f.error(_retracted(v, X(k), 6, d)) - f.error(_retracted(v, X(k), 6, -d))) / (2 * h))
+    num = np.array(num)
+    assert np.abs(grad).max() > 1.0
+    assert np.abs(grad - num).max() <= 1e-3 * np.abs(grad).max(), np.abs(grad - num).max()

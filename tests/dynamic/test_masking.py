@@ -1,0 +1,109 @@
+"""Mask application: exactly the keypoints on masks / boxes are dropped, before tracking and before mapping."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from vslam.data.synthetic import SyntheticConfig, SyntheticSequence
+from vslam.data.types import Frame, PinholeCamera
+from vslam.dynamic import DynamicConfig, DynamicFilter, dilate, in_boxes, in_mask
+from vslam.errors import ConfigError
+from vslam.features.base import Features
+from vslam.tracking.slam import SlamConfig, SlamTracker
+
+CAM = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
+
+
+def _feats(uv: np.ndarray) -> Features:
+    n = len(uv)
+    return Features(uv.copy(), uv.copy(), np.zeros((n, 32), np.uint8), np.zeros(n, np.int64), np.ones(n))
+
+
+def _grid_feats() -> Features:
+    xs, ys = np.meshgrid(np.arange(0, 64, 3.0), np.arange(0, 48, 3.0))
+    return _feats(np.stack([xs.ravel(), ys.ravel()], 1) + 0.3)
+
+
+def test_in_mask_and_boxes_are_exact():
+    f = _grid_feats()
+    mask = np.zeros((48, 64), bool)
+    mask[10:20, 30:40] = True  # rows 10..19, cols 30..39
+    u, v = np.rint(f.raw[:, 0]), np.rint(f.raw[:, 1])
+    expect = (u >= 30) & (u <= 39) & (v >= 10) & (v <= 19)
+    assert expect.sum() > 5
+    np.testing.assert_array_equal(in_mask(f.raw, mask), expect)
+    # a box covers its closed pixel rectangle; pad grows it on every side
+    box = np.array([[30.0, 10.0, 39.0, 19.0]])
+    x, y = f.raw[:, 0], f.raw[:, 1]
+    np.testing.assert_array_equal(in_boxes(f.raw, box), (x >= 30) & (x <= 39) & (y >= 10) & (y <= 19))
+    np.testing.assert_array_equal(in_boxes(f.raw, box, 2.0), (x >= 28) & (x <= 41) & (y >= 8) & (y <= 21))
+    assert not in_boxes(f.raw, np.zeros((0, 4))).any()
+    # keypoints outside the image are not masked (no wrap-around indexing)
+    assert not in_mask(np.array([[-1.0, 5.0], [64.2, 5.0], [5.0, 48.0]]), np.ones((48, 64), bool)).any()
+    assert dilate(mask, 2).sum() == 14 * 14
+
+
+def test_filter_keeps_exactly_the_unmasked_keypoints():
+    f = _grid_feats()
+    mask = np.zeros((48, 64), bool)
+    mask[5:30, 2:20] = True
+    frame = Frame(0, 0.0, np.zeros((48, 64), np.uint8), dynamic_mask=mask)
+    keep = DynamicFilter(DynamicConfig(enabled=True, source="gt_mask", dilation_px=0), CAM).keep(frame, f)
+    np.testing.assert_array_equal(keep, ~in_mask(f.raw, mask))
+    # dilation: the keypoints within dilation_px of the mask go too
+    keep3 = DynamicFilter(DynamicConfig(enabled=True, source="gt_mask", dilation_px=3), CAM).keep(frame, f)
+    np.testing.assert_array_equal(keep3, ~in_mask(f.raw, dilate(mask, 3)))
+    assert keep3.sum() < keep.sum()
+    # boxes only (no pixel mask): the boxes are used
+    fb = Frame(0, 0.0, np.zeros((48, 64), np.uint8), boxes=np.array([[2.0, 5.0, 19.0, 29.0]]))
+    keepb = DynamicFilter(DynamicConfig(enabled=True, source="gt_mask", dilation_px=0), CAM).keep(fb, f)
+    np.testing.assert_array_equal(keepb, keep)
+    # source none keeps everything
+    assert DynamicFilter(DynamicConfig(enabled=True, source="none"), CAM).keep(frame, f).all()
+
+
+def test_config_errors():
+    with pytest.raises(ConfigError):
+        DynamicConfig(source="yolo")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError):
+        DynamicFilter(DynamicConfig(enabled=True, source="detector"), CAM)  # no weights
+
+
+def test_slam_never_tracks_or_maps_masked_keypoints():
+    """A fixed mask over the left third of a static synthetic room: no keyframe keypoint (the mapping input) and no
+    map point observation lies under it, and with the filter off the same frames do use that region."""
+    seq = SyntheticSequence(SyntheticConfig(n_frames=12, width=320, height=240, fx=262.5, fy=262.5, n_movers=0))
+    mask = np.zeros((240, 320), bool)
+    mask[:, :110] = True
+    frames = [dataclasses.replace(fr, dynamic_mask=mask) for fr in seq]
+
+    def run(enabled: bool) -> SlamTracker:
+        cfg = SlamConfig(dynamic=DynamicConfig(enabled=enabled, source="gt_mask", dilation_px=0))
+        st = SlamTracker(seq.calibration, "rgbd", cfg)
+        for fr in frames:
+            assert st.track(fr).tracked
+        return st
+
+    on, off = run(True), run(False)
+    for st, expect_masked in ((on, False), (off, True)):
+        raw = np.concatenate([kf.features.raw for kf in st.map.keyframes.values()])
+        assert in_mask(raw, mask).any() == expect_masked
+        obs = [st.map.keyframes[k].features.raw[i] for p in st.map.points.values() for k, i in p.observations.items()]
+        assert in_mask(np.array(obs), mask).any() == expect_masked
+
+
+def test_detector_source_masks_only_confident_boxes_of_listed_classes():
+    from vslam.dynamic.detector import Detections
+
+    class FakeDetector:
+        def detect(self, image):
+            return Detections(np.array([[2.0, 5.0, 19.0, 29.0], [40.0, 5.0, 60.0, 40.0], [25.0, 30.0, 35.0, 45.0]]),
+                              np.array([0.9, 0.9, 0.2]), np.array([0, 1, 0]), np.array(["person", "tv", "person"], dtype=object))
+
+    f = _grid_feats()
+    cfg = DynamicConfig(enabled=True, source="detector", dilation_px=0, score_threshold=0.35)
+    keep = DynamicFilter(cfg, CAM, detector=FakeDetector()).keep(Frame(0, 0.0, np.zeros((48, 64), np.uint8)), f)
+    np.testing.assert_array_equal(keep, ~in_boxes(f.raw, np.array([[2.0, 5.0, 19.0, 29.0]])))

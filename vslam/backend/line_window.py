@@ -1,0 +1,222 @@
+"""All line observations of a BA window as ONE structureless GTSAM factor on the window's poses.
+
+Why: a Python ``CustomFactor`` per line costs ~160-350 us per call on this machine and LM calls each one
+~25 times per local BA: with one factor per line (``line_factor``), 60 lines x 4 views made a 10-keyframe,
+3000-observation window 3.5-5x slower than its points alone, and a 6-keyframe window with 25 lines x 6 views
+and 12 points 20-40x (``python -m tests.backend.bench_lines``, CPU time). Here every line of the window is
+handled in one vectorised numpy callback, and the lines are not GTSAM variables at all (like GTSAM's smart
+factors); the same 60-line window then costs 1.3-1.7x its points alone (233 -> 392 ms CPU on an idle machine).
+
+1. *Inner solve*: for the poses being evaluated, each line's 4-DoF orthonormal form (``plucker``) gets
+   ``inner_iterations`` (1) Levenberg-Marquardt steps on its Huber (IRLS) end-point distances, batched over
+   lines, with a per-line damping and a 0.05 rad trust region, always started from the lines of the last
+   *linearisation* (4 steps at the first call), so error() depends on the poses only, as LM assumes.
+   error() reports the cost |r| of those lines, linearize() the projected rows below and re-anchors.
+2. *Schur by null-space projection* (MSCKF, Mourikis & Roumeliotis 2007): with J_l (2n x 4) the line
+   Jacobian of a line seen n times and Q an orthonormal basis of its left null space, the rows
+   Q^T r, Q^T J_x depend on the poses only, and at the inner optimum (J_l^T r = 0) |Q^T r| = |r|, so the
+   factor's error equals the Huber cost of the line observations and its gradient is exact.
+   A line seen twice gives 4 residuals for its 4 DoF and no pose information: it contributes 0 rows.
+
+Residual rows are fixed at construction (sum over lines of 2 n_j - 4), as GTSAM requires.
+Pose Jacobian (right retraction T_world_cam Exp(omega, v)): dn_c/d(omega, v) = [[n_c]x, [d_c]x], see
+``line_factor``.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from vslam.backend.line_factor import _cross, _huber, _skew_stack
+from vslam.geometry import plucker as pl
+
+_MAX_STEP = 0.05  # rad, largest (theta, phi) step of one inner iteration
+_PRIME_ITERATIONS = 4  # inner iterations at the first evaluation; later ones warm-start from the last linearisation
+
+
+class LineWindow:
+    """Line landmarks of one BA window.
+
+    lines: (N,6) initial Plücker lines (world); obs_line (M,) index into lines; obs_pose (M,) index into
+    ``pose_keys``; segs (M,4) observed segments, ideal pixels; K_L (3,3); sigma px; huber_k in sigmas.
+    After optimisation ``lines()`` holds the refined lines (|d| = 1).
+    """
+
+    def __init__(self, lines: np.ndarray, obs_line: np.ndarray, obs_pose: np.ndarray, segs: np.ndarray,
+                 pose_keys: list[int], K_L: np.ndarray, sigma: float, huber_k: float | None, inner_iterations: int = 1):
+        self.n_lines = len(lines)
+        self.line_ids: list[int] = list(range(self.n_lines))  # caller's ids of the rows of ``lines()``
+        self.U, self.w = pl.to_orthonormal(np.asarray(lines, dtype=np.float64).reshape(-1, 6))
+        order = np.lexsort((obs_pose, obs_line))  # observations grouped by line
+        self.ol = np.asarray(obs_line, dtype=np.int64)[order]
+        self.op = np.asarray(obs_pose, dtype=np.int64)[order]
+        segs = np.asarray(segs, dtype=np.float64).reshape(-1, 4)[order]
+        self.order = order
+        m = len(self.ol)
+        self.x = np.ones((m, 2, 3))
+        self.x[:, 0, :2], self.x[:, 1, :2] = segs[:, :2], segs[:, 2:]
+        self.pose_keys = list(pose_keys)
+        self.K_L, self.inv_sigma, self.huber_k, self.inner = K_L, 1.0 / sigma, huber_k, inner_iterations
+        self.count = np.bincount(self.ol, minlength=self.n_lines)
+        # groups of lines with the same number of views (batched null-space QR per group)
+        self.groups: list[tuple[int, np.ndarray]] = []
+        starts = np.r_[0, np.cumsum(self.count)[:-1]]
+        self.starts = starts  # first observation row of each line (every line has >= 1)
+        for n in np.unique(self.count[self.count >= 3]).tolist():
+            js = np.flatnonzero(self.count == n)
+            self.groups.append((n, starts[js][:, None] + np.arange(n)[None, :]))  # (B, n) observation rows
+        self.dim = int(sum(len(rows) * (2 * n - 4) for n, rows in self.groups))
+        self._primed = False
+
+    # -- numpy core ------------------------------------------------------------------------------------------
+    def _geom(self, Twc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per observation: R_world_cam (M,3,3) and camera centre C (M,3)."""
+        return Twc[self.op, :3, :3], Twc[self.op, :3, 3]
+
+    def _residuals(self, geom: tuple[np.ndarray, np.ndarray], U: np.ndarray, w: np.ndarray, jac: bool):
+        """Robust whitened residuals (M,2) and, with jac, dr/d(line 4) (M,2,4) and dr/d(pose 6) (M,2,6).
+
+        Written with einsum / component cross products over the M observations: batched (M,3,3) matmuls
+        cost ~4x more here (numpy loops over tiny matrices).
+        """
+        R, C = geom
+        Uo, wo = U[self.ol], w[self.ol]
+        u1, u2 = Uo[:, :, 0], Uo[:, :, 1]
+        w0, w1 = wo[:, :1], wo[:, 1:]
+        dw = w1 * u2
+        nc = np.einsum("mji,mj->mi", R, w0 * u1 - _cross(C, dw))  # R^T (n_w - C x d_w)
+        l = nc @ self.K_L.T
+        rho2 = l[:, 0] ** 2 + l[:, 1] ** 2
+        rho = np.sqrt(rho2)
+        xl = np.einsum("mkj,mj->mk", self.x, l)
+        e = xl * (self.inv_sigma / rho)[:, None]
+        r, sw = e, None
+        if self.huber_k is not None:
+            r, sw = _huber(e, self.huber_k, jac)
+        if not jac:
+            return r, None, None
+        m = len(self.ol)
+        l01 = l.copy()
+        l01[:, 2] = 0.0
+        A = self.x / rho[:, None, None] - (xl / (rho2 * rho)[:, None])[:, :, None] * l01[:, None, :]  # de/dl
+        G = (A.reshape(-1, 3) @ (self.K_L * self.inv_sigma)).reshape(m, 2, 3)  # de/dn_c
+        if sw is not None:  # IRLS (see line_factor._huber)
+            G = sw[:, None, None] * G
+        GR = np.einsum("mki,mji->mkj", G, R)  # de/d(world vector) through R^T
+        # dL_w/d(theta, phi) (plucker.orthonormal_jacobian) folded with dn_c/dL_w = R^T [I, -[C]x]:
+        # column i is R^T (dn_i - C x dd_i)
+        u3 = Uo[:, :, 2]
+        Q = np.stack([-_cross(C, w1 * u3), -w0 * u3, w0 * u2 + _cross(C, w1 * u1), -w1 * u1 - _cross(C, w0 * u2)], axis=2)
+        Jl = np.einsum("mkj,mji->mki", GR, Q)
+        dc = np.einsum("mji,mj->mi", R, dw)
+        Jx = np.concatenate([_cross(G, nc[:, None, :]), _cross(G, dc[:, None, :])], axis=2)  # r^T [a]x = (r x a)^T
+        return r, Jl, Jx
+
+    def refine_lines(self, Twc: np.ndarray, iterations: int, U: np.ndarray | None = None, w: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Levenberg-Marquardt on every line at fixed poses (batched 4x4 solves, one damping per line) from
+        (U, w) (default: the stored lines); a step that raises a line's cost is not taken and that line's
+        damping grows 100x. -> refined (U, w) and (N,) 2 x robust cost per line there; stores nothing."""
+        U = self.U.copy() if U is None else U.copy()
+        w = self.w.copy() if w is None else w.copy()
+        geom = self._geom(Twc)
+        r0, _, _ = self._residuals(geom, U, w, False)
+        cost = np.bincount(self.ol, np.sum(r0 * r0, 1), self.n_lines)  # 2 x Huber cost per line
+        lam = np.full(self.n_lines, 1e-6)
+        for _ in range(iterations):
+            r, Jl, _ = self._residuals(geom, U, w, True)  # IRLS-weighted
+            H = np.add.reduceat(np.einsum("mki,mkj->mij", Jl, Jl), self.starts, axis=0)  # rows are grouped by line
+            g = np.add.reduceat(np.einsum("mij,mi->mj", Jl, r), self.starts, axis=0)
+            H += (lam[:, None] * np.diagonal(H, axis1=1, axis2=2) + 1e-12)[:, :, None] * np.eye(4)
+            delta = -np.linalg.solve(H, g[:, :, None])[:, :, 0]
+            # trust region: at most _MAX_STEP rad per step, so a line seen from still-wrong poses early in
+            # BA cannot jump into another minimum (seen: a line near-parallel to the motion flipped)
+            delta *= np.minimum(1.0, _MAX_STEP / (np.linalg.norm(delta, axis=1) + 1e-300))[:, None]
+            U2 = U @ _so3_exp_batch(delta[:, :3])
+            c, s = np.cos(delta[:, 3]), np.sin(delta[:, 3])
+            w2 = np.stack([w[:, 0] * c - w[:, 1] * s, w[:, 1] * c + w[:, 0] * s], axis=1)
+            r2, _, _ = self._residuals(geom, U2, w2, False)
+            cost2 = np.bincount(self.ol, np.sum(r2 * r2, 1), self.n_lines)
+            better = cost2 < cost
+            U[better], w[better], cost[better] = U2[better], w2[better], cost2[better]
+            lam = np.where(better, np.maximum(lam * 0.1, 1e-9), lam * 100.0)  # per-line Levenberg-Marquardt
+        return U, w, cost
+
+    def lines(self) -> np.ndarray:
+        """(N,6) current lines, |d| = 1."""
+        L = np.concatenate([self.w[:, :1] * self.U[:, :, 0], self.w[:, 1:] * self.U[:, :, 1]], axis=1)
+        return pl.normalize(L)
+
+    def whitened_sq_errors(self, Twc: np.ndarray) -> np.ndarray:
+        """(M,) unrobust chi2 of each observation (input order) at poses Twc (K,4,4) and the current lines."""
+        hk, self.huber_k = self.huber_k, None
+        r, _, _ = self._residuals(self._geom(Twc), self.U, self.w, False)
+        self.huber_k = hk
+        out = np.empty(len(r))
+        out[self.order] = np.sum(r * r, 1)
+        return out
+
+    def _projected(self, Twc: np.ndarray, U: np.ndarray, w: np.ndarray, jac: bool):
+        r, Jl, Jx = self._residuals(self._geom(Twc), U, w, True)
+        K = len(self.pose_keys)
+        rows_r, rows_J = [], []
+        for n, obs in self.groups:
+            B = len(obs)
+            JL = Jl[obs].reshape(B, 2 * n, 4)
+            Q = np.linalg.qr(JL, mode="complete")[0][:, :, 4:]  # (B, 2n, 2n-4) left null space
+            Qt = Q.transpose(0, 2, 1)
+            rows_r.append((Qt @ r[obs].reshape(B, 2 * n, 1))[:, :, 0].reshape(-1))
+            if jac:
+                Jfull = np.zeros((B, 2 * n, K, 6))
+                bi = np.repeat(np.arange(B), n)
+                ri = np.tile(np.arange(n), B)
+                pi = self.op[obs].reshape(-1)
+                Jo = Jx[obs].reshape(B * n, 2, 6)
+                Jfull[bi, 2 * ri, pi] = Jo[:, 0]
+                Jfull[bi, 2 * ri + 1, pi] = Jo[:, 1]
+                rows_J.append((Qt @ Jfull.reshape(B, 2 * n, 6 * K)).reshape(-1, 6 * K))
+        rr = np.concatenate(rows_r) if rows_r else np.zeros(0)
+        JJ = np.concatenate(rows_J) if jac and rows_J else np.zeros((0, 6 * K))
+        return rr, JJ
+
+    # -- GTSAM glue ---------------------------------------------------------------------------------------------
+    def factor(self) -> gtsam.CustomFactor | None:
+        """The structureless factor on the window's poses; None when no line has >= 3 views."""
+        if self.dim == 0:
+            return None
+
+        def error(this: gtsam.CustomFactor, v: gtsam.Values, H: list | None) -> np.ndarray:
+            # The lines are re-solved from the state stored at the last *linearisation* (an accepted LM
+            # point), never from a trial point, so error() is a function of the poses alone, as LM assumes.
+            Twc = np.array([v.atPose3(k).matrix() for k in self.pose_keys])
+            if not self._primed:  # first call (LM's initial error): converge the lines at the initial poses
+                self.U, self.w, _ = self.refine_lines(Twc, _PRIME_ITERATIONS)
+                self._primed = True
+            U, w, cost = self.refine_lines(Twc, self.inner)
+            if H is None:
+                # The cost of the lines as they are, |r|, not |Q^T r|: the two agree only at the exact inner
+                # optimum, and the projected norm under-reports a line that is not yet there, which made LM
+                # reject every step near convergence (with Huber the inner solve converges linearly).
+                out = np.zeros(self.dim)
+                out[0] = np.sqrt(float(cost[self.count >= 3].sum()))  # the lines that have rows
+                return out
+            r, J = self._projected(Twc, U, w, True)
+            if H is not None:
+                self.U, self.w = U, w  # re-anchor
+                for i in range(len(self.pose_keys)):
+                    H[i] = np.ascontiguousarray(J[:, 6 * i : 6 * i + 6])
+            return r
+
+        return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(self.dim), self.pose_keys, error)
+
+
+def _so3_exp_batch(w: np.ndarray) -> np.ndarray:
+    """(N,3) rotation vectors -> (N,3,3) (Rodrigues, small-angle safe)."""
+    th2 = np.sum(w * w, 1)
+    th = np.sqrt(th2)
+    small = th2 < 1e-16
+    a = np.where(small, 1.0, np.sin(th) / np.where(small, 1.0, th))
+    b = np.where(small, 0.5, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
+    K = _skew_stack(w)
+    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)

@@ -1,0 +1,62 @@
+"""Settings of dynamic-object filtering (issue 5): which keypoints are dropped before tracking and mapping."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from vslam.errors import ConfigError
+
+MaskSource = Literal["detector", "gt_mask", "none"]
+
+
+@dataclass(frozen=True)
+class GeometricConfig:
+    """DynaSLAM-style motion check (no network): a keypoint whose world point, back-projected with its depth and
+    the tracked pose, disagrees with the world point of the same feature a few frames earlier is moving.
+
+    A keypoint is flagged when the 3-D residual exceeds ``abs_m + rel * depth`` against at least ``min_votes`` of
+    the frames ``frame_gaps`` back (several frames: one mismatched descriptor or one noisy depth cannot flag it).
+    Flagged keypoints spread to neighbours within ``region_px`` pixels and ``region_depth_m`` depth (the moving
+    object, like DynaSLAM's depth region growing); that region is also removed from the next frame before
+    tracking.
+    """
+
+    enabled: bool = False
+    frame_gaps: tuple[int, ...] = (3, 6, 9)
+    min_votes: int = 2
+    abs_m: float = 0.03  # metres: depth noise + pose error of a static point
+    rel: float = 0.01  # fraction of the depth (RGB-D depth noise grows with range)
+    max_hamming: int = 50  # binary descriptors: a match further than this is ignored
+    max_l2: float = 0.7  # float descriptors
+    region_px: float = 25.0
+    region_depth_m: float = 0.3
+    min_depth: float = 0.1
+    max_depth: float = 10.0
+
+    def __post_init__(self) -> None:
+        if not self.frame_gaps or min(self.frame_gaps) < 1:
+            raise ConfigError("slam.dynamic.geometric.frame_gaps must be a non-empty list of gaps >= 1")
+        if not 1 <= self.min_votes <= len(self.frame_gaps):
+            raise ConfigError(f"slam.dynamic.geometric.min_votes must be in 1..{len(self.frame_gaps)}")
+
+
+@dataclass(frozen=True)
+class DynamicConfig:
+    """``source``: where the masks of dynamic objects come from. ``gt_mask`` uses the synthetic generator's exact
+    masks (an oracle that bounds what masking can give); ``detector`` runs the attention detector and masks the
+    boxes of ``classes``; ``none`` masks nothing (geometric check only, when enabled)."""
+
+    enabled: bool = False
+    source: MaskSource = "gt_mask"
+    classes: tuple[str, ...] = ("person", "bicycle", "car", "motorcycle", "bus", "truck", "chair")
+    dilation_px: int = 4  # mask / box growth: keypoints on an object's outline have an ORB patch on it
+    score_threshold: float = 0.35  # detector boxes below this score are ignored
+    weights: str = ""  # detector checkpoint (source=detector)
+    geometric: GeometricConfig = field(default_factory=GeometricConfig)
+
+    def __post_init__(self) -> None:
+        if self.source not in ("detector", "gt_mask", "none"):
+            raise ConfigError(f"slam.dynamic.source must be detector, gt_mask or none, got {self.source!r}")
+        if self.dilation_px < 0:
+            raise ConfigError("slam.dynamic.dilation_px must be >= 0")

@@ -1,0 +1,105 @@
+"""Inference wrapper around the YOLOv8-like detector: image in, boxes out (numpy at the boundary).
+
+Imports only torch, numpy and cv2, so it loads without the SLAM back end (gtsam, pycolmap).
+A checkpoint is a ``torch.save`` dict: ``model`` (state dict), ``config`` (DetectorConfig fields), ``names``
+(class names, index = class id) and, for training checkpoints, optimiser state and progress.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from vslam.dynamic.model import DetectorConfig, YoloDetector, decode
+from vslam.dynamic.nms import batched_nms
+
+
+@dataclass
+class Detections:
+    """boxes: (K,4) float x1,y1,x2,y2 pixels of the input image; scores: (K,); class_ids: (K,) int;
+    class_names: (K,) str."""
+
+    boxes: np.ndarray
+    scores: np.ndarray
+    class_ids: np.ndarray
+    class_names: np.ndarray
+
+
+def letterbox(image: np.ndarray, size: int) -> tuple[np.ndarray, float, tuple[int, int]]:
+    """Resize the longer side to ``size`` keeping aspect, pad to a multiple of 32 (grey 114, the YOLO habit).
+    -> padded image, scale (new / old), (pad_x, pad_y) added on the left/top."""
+    h, w = image.shape[:2]
+    r = size / max(h, w)
+    nh, nw = round(h * r), round(w * r)
+    im = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_LINEAR) if (nh, nw) != (h, w) else image
+    ph, pw = (-nh) % 32, (-nw) % 32
+    top, left = ph // 2, pw // 2
+    im = cv2.copyMakeBorder(im, top, ph - top, left, pw - left, cv2.BORDER_CONSTANT, value=(114, 114, 114))
+    return im, r, (left, top)
+
+
+def to_tensor(images_rgb: list[np.ndarray]) -> torch.Tensor:
+    """List of (H,W,3) uint8 RGB, same size -> (B,3,H,W) float32 in [0,1]."""
+    return torch.from_numpy(np.stack(images_rgb)).permute(0, 3, 1, 2).float().div_(255.0)
+
+
+@torch.no_grad()
+def postprocess(boxes: torch.Tensor, probs: torch.Tensor, conf: float, iou: float, max_det: int = 100,
+                max_candidates: int = 3000) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """Per image: (K,4) boxes, (K,) scores, (K,) classes after score threshold and class-aware NMS."""
+    out = []
+    for b, p in zip(boxes, probs):
+        score, cls = p.max(-1)
+        keep = score > conf
+        b, score, cls = b[keep], score[keep], cls[keep]
+        if len(score) > max_candidates:
+            top = score.topk(max_candidates).indices
+            b, score, cls = b[top], score[top], cls[top]
+        k = batched_nms(b, score, cls, iou)[:max_det]
+        out.append((b[k], score[k], cls[k]))
+    return out
+
+
+class Detector:
+    """``detect(image)``: BGR or grey uint8 image -> Detections in that image's pixels."""
+
+    def __init__(self, model: YoloDetector, names: list[str], img_size: int = 640, conf: float = 0.25, iou: float = 0.6):
+        self.model, self.names = model.eval(), list(names)
+        self.img_size, self.conf, self.iou = img_size, conf, iou
+
+    def detect(self, image: np.ndarray) -> Detections:
+        rgb = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB if image.ndim == 2 else cv2.COLOR_BGR2RGB)
+        im, r, (px, py) = letterbox(rgb, self.img_size)
+        with torch.inference_mode():
+            boxes, probs = decode(self.model, self.model(to_tensor([im])))
+        b, s, c = postprocess(boxes, probs, self.conf, self.iou)[0]
+        b = b.numpy().astype(np.float64)
+        b[:, [0, 2]] = (b[:, [0, 2]] - px) / r
+        b[:, [1, 3]] = (b[:, [1, 3]] - py) / r
+        ids = c.numpy().astype(np.int64)
+        return Detections(b, s.numpy().astype(np.float64), ids, np.array([self.names[i] for i in ids], dtype=object))
+
+
+def save_checkpoint(path: str | Path, model: YoloDetector, names: list[str], **extra: object) -> Path:
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_suffix(p.suffix + ".tmp")
+    torch.save({"model": model.state_dict(), "config": asdict(model.cfg), "names": list(names), **extra}, tmp)
+    tmp.replace(p)  # atomic: an interrupted save never leaves a broken checkpoint behind
+    return p
+
+
+def load_model(path: str | Path) -> tuple[YoloDetector, dict]:
+    ckpt = torch.load(Path(path), map_location="cpu", weights_only=False)
+    model = YoloDetector(DetectorConfig(**ckpt["config"]))
+    model.load_state_dict(ckpt["model"])
+    return model, ckpt
+
+
+def load_detector(path: str | Path, img_size: int = 640, conf: float = 0.25) -> Detector:
+    model, ckpt = load_model(path)
+    return Detector(model, ckpt["names"], img_size=int(ckpt.get("img_size", img_size)), conf=conf)

@@ -1,0 +1,123 @@
+"""Map save / load: keyframes, map points and place descriptors in one versioned ``.npz`` file.
+
+Layout (``FORMAT_VERSION`` 1): a JSON ``header`` (format name, version, counts, descriptor kind and dim,
+next ids) plus flat numpy arrays -- per keyframe its pose and the offsets of its keypoints in the
+concatenated per-keypoint arrays (raw, uv, desc, octave, response, depth, ur, point_ids), per point its
+position, representative descriptor, first keyframe and visibility counters, and one place-descriptor row
+per keyframe. Observations are not stored: they are exactly the keyframes' ``point_ids`` and are rebuilt
+from them, so the file cannot hold an inconsistent map. numpy only (``allow_pickle=False``): a map file
+never executes code when loaded.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vslam.errors import VslamError
+from vslam.features.base import Features
+from vslam.loop.database import KeyframeDatabase
+from vslam.mapping.map import KeyFrame, Map, MapPoint
+
+FORMAT = "vslam-map"
+FORMAT_VERSION = 1
+
+
+class MapFileError(VslamError):
+    """A map file that is missing, of another format or version, or inconsistent."""
+
+
+@dataclass
+class LoadedMap:
+    map: Map
+    database: KeyframeDatabase
+    header: dict
+
+
+def save_map(path: str | Path, m: Map, database: KeyframeDatabase, descriptor_kind: str = "bow") -> Path:
+    """Write ``m`` and the place descriptors of its keyframes (every keyframe must be in ``database``)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    kfs = list(m.keyframes.values())
+    missing = [k.id for k in kfs if k.id not in database]
+    if missing:
+        raise MapFileError(f"{path}: keyframes {missing[:5]} have no place descriptor")
+    n_kp = np.array([len(k.features) for k in kfs], np.int64)
+    off = np.r_[0, np.cumsum(n_kp)]
+
+    def cat(get, dtype=None) -> np.ndarray:
+        parts = [np.asarray(get(k)) for k in kfs]
+        out = np.concatenate(parts) if parts else np.zeros(0)
+        return out.astype(dtype) if dtype is not None else out
+
+    pts = list(m.points.values())
+    header = {"format": FORMAT, "version": FORMAT_VERSION, "keyframes": len(kfs), "points": len(pts),
+              "descriptor": descriptor_kind, "descriptor_dim": database.dim,
+              "next_kf": m._next_kf, "next_pt": m._next_pt}
+    arrays = {
+        "header": np.frombuffer(json.dumps(header).encode(), np.uint8),
+        "kf_id": np.array([k.id for k in kfs], np.int64),
+        "kf_frame_index": np.array([k.frame_index for k in kfs], np.int64),
+        "kf_timestamp": np.array([k.timestamp for k in kfs], np.float64),
+        "kf_T": np.array([k.T_world_cam for k in kfs], np.float64).reshape(-1, 4, 4),
+        "kf_scale_factor": np.array([k.features.scale_factor for k in kfs], np.float64),
+        "kf_offset": off,
+        "kf_place": np.array([database.vector(k.id) for k in kfs], np.float32).reshape(-1, database.dim),
+        "kp_raw": cat(lambda k: k.features.raw, np.float64).reshape(-1, 2),
+        "kp_uv": cat(lambda k: k.features.uv, np.float64).reshape(-1, 2),
+        "kp_desc": cat(lambda k: k.features.desc),
+        "kp_octave": cat(lambda k: k.features.octave, np.int64),
+        "kp_response": cat(lambda k: k.features.response, np.float64),
+        "kp_depth": cat(lambda k: k.depth, np.float64),
+        "kp_ur": cat(lambda k: k.ur, np.float64),
+        "kp_point": cat(lambda k: k.point_ids, np.int64),
+        "pt_id": np.array([p.id for p in pts], np.int64),
+        "pt_xyz": np.array([p.xyz for p in pts], np.float64).reshape(-1, 3),
+        "pt_desc": np.array([p.descriptor for p in pts]),
+        "pt_first_kf": np.array([p.first_kf for p in pts], np.int64),
+        "pt_visible": np.array([[p.n_visible, p.n_found] for p in pts], np.int64).reshape(-1, 2),
+    }
+    with open(path, "wb") as f:
+        np.savez_compressed(f, **arrays)
+    return path
+
+
+def load_map(path: str | Path) -> LoadedMap:
+    """Read a file written by ``save_map`` -> the map (observations rebuilt) and its keyframe database."""
+    path = Path(path)
+    if not path.is_file():
+        raise MapFileError(f"{path}: map file not found")
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            z = {k: f[k] for k in f.files}  # NpzFile decompresses on every access: read each array once
+        header = json.loads(bytes(z["header"]).decode())
+    except (OSError, ValueError, KeyError) as e:
+        raise MapFileError(f"{path}: not a vslam map file ({e})") from None
+    if header.get("format") != FORMAT or header.get("version") != FORMAT_VERSION:
+        raise MapFileError(f"{path}: format {header.get('format')!r} version {header.get('version')!r}, "
+                           f"expected {FORMAT!r} version {FORMAT_VERSION}")
+    m = Map()
+    off = z["kf_offset"]
+    for i, kid in enumerate(z["kf_id"].tolist()):
+        s = slice(int(off[i]), int(off[i + 1]))
+        feats = Features(z["kp_raw"][s], z["kp_uv"][s], z["kp_desc"][s], z["kp_octave"][s], z["kp_response"][s],
+                         float(z["kf_scale_factor"][i]))
+        m.keyframes[kid] = KeyFrame(kid, int(z["kf_frame_index"][i]), float(z["kf_timestamp"][i]), z["kf_T"][i].copy(),
+                                    feats, z["kp_depth"][s].copy(), z["kp_ur"][s].copy(), z["kp_point"][s].copy())
+    for j, pid in enumerate(z["pt_id"].tolist()):
+        nv, nf = z["pt_visible"][j].tolist()
+        m.points[pid] = MapPoint(pid, z["pt_xyz"][j].copy(), z["pt_desc"][j].copy(), int(z["pt_first_kf"][j]), {}, nv, nf)
+    for kf in m.keyframes.values():
+        for kp in np.flatnonzero(kf.point_ids >= 0).tolist():
+            pid = int(kf.point_ids[kp])
+            if pid not in m.points:
+                raise MapFileError(f"{path}: keyframe {kf.id} observes unknown point {pid}")
+            m.points[pid].observations[kf.id] = kp
+    m._next_kf, m._next_pt = int(header["next_kf"]), int(header["next_pt"])
+    db = KeyframeDatabase(int(header["descriptor_dim"]))
+    for kid, v in zip(z["kf_id"].tolist(), z["kf_place"]):
+        db.add(kid, v)
+    return LoadedMap(m, db, header)

@@ -1,0 +1,288 @@
+"""Line landmarks in the SLAM map, and the line steps of tracking and local mapping (issue 6, seed 003 ch. 3).
+
+``LineSlam`` is what ``SlamTracker`` calls when ``slam.lines.enabled``; everything line-specific lives
+here so the point-only path is untouched when it is off:
+
+- ``detect``: LSD segments + band descriptors of a frame (``features.lines``).
+- ``track``: after the point tracker, project the local map's lines with its pose, match them
+  (``match_lines``), and refine the pose on points + lines (``backend.pose_lines``).
+- ``add_keyframe``: keep the keyframe's segments, attach the tracked line observations, create new lines
+  from the depth map (RGB-D, or stereo/synthetic frames that carry depth): depth sampled along each unmatched
+  segment on both sides of the edge (the nearer side: an occluding edge belongs to the foreground), a 3-D
+  line fitted to the samples and accepted when they lie on it.
+- ``ba_problem`` / ``apply_ba``: the window's lines for local BA (``backend.line_ba``) and the results back.
+- ``write_ply``: the map lines as an open3d ``LineSet`` PLY (end points = extent seen by the first view).
+
+Monocular and stereo sequences get no line landmarks yet (lines are created from the RGB-D depth map;
+two-view line triangulation, ``geometry.plucker.triangulate_planes``, is not wired in), and skip detection.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from vslam.backend.line_ba import LineProblem
+from vslam.backend.pose_lines import refine_pose_points_lines
+from vslam.data.types import PinholeCamera, SensorKind
+from vslam.features.lines import LineConfig, LineExtractor, LineFeatures, match_lines
+from vslam.geometry import plucker as pl
+from vslam.geometry.se3 import inv_T
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class MapLine:
+    """A 3-D line: L (6,) Plücker world (|d| = 1); ends (2,3) world extent, oriented like the segments;
+    desc (D,) band descriptor; observations {kf_id: segment index}; first_kf: creating keyframe."""
+
+    id: int
+    L: np.ndarray
+    ends: np.ndarray
+    desc: np.ndarray
+    first_kf: int
+    observations: dict[int, int] = field(default_factory=dict)
+
+
+class LineMap:
+    """Line landmarks and each keyframe's segments; single-threaded, ids increase from 0."""
+
+    def __init__(self) -> None:
+        self.lines: dict[int, MapLine] = {}
+        self.kf_feats: dict[int, LineFeatures] = {}
+        self.kf_ids: dict[int, np.ndarray] = {}  # kf id -> (N,) line id per segment, -1 none
+        self._next = 0
+
+    def add_line(self, L: np.ndarray, ends: np.ndarray, kf_id: int, idx: int) -> MapLine:
+        ml = MapLine(self._next, pl.normalize(L), np.asarray(ends, dtype=np.float64), self.kf_feats[kf_id].desc[idx].copy(), kf_id)
+        self.lines[ml.id] = ml
+        self._next += 1
+        self.add_observation(ml.id, kf_id, idx)
+        return ml
+
+    def add_observation(self, lid: int, kf_id: int, idx: int) -> None:
+        ids = self.kf_ids[kf_id]
+        if ids[idx] >= 0 or kf_id in self.lines[lid].observations:
+            return
+        self.lines[lid].observations[kf_id] = int(idx)
+        ids[idx] = lid
+
+    def remove_observation(self, lid: int, kf_id: int) -> None:
+        ml = self.lines.get(lid)
+        if ml is None or kf_id not in ml.observations:
+            return
+        idx = ml.observations.pop(kf_id)
+        if self.kf_ids[kf_id][idx] == lid:
+            self.kf_ids[kf_id][idx] = -1
+        if not ml.observations:
+            del self.lines[lid]
+
+    def remove_line(self, lid: int) -> None:
+        for k in list(self.lines[lid].observations):
+            self.remove_observation(lid, k)
+
+    def seen_by(self, kf_ids: list[int]) -> np.ndarray:
+        """Sorted unique ids of the lines observed by any of ``kf_ids``."""
+        arr = [self.kf_ids[k] for k in kf_ids if k in self.kf_ids]
+        if not arr:
+            return np.zeros(0, np.int64)
+        u = np.unique(np.concatenate(arr))
+        return u[u >= 0]
+
+
+def project_segments(ends: np.ndarray, T_world_cam: np.ndarray, cam: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+    """(P,2,3) world end points -> (P,4) ideal-pixel segments and (P,) mask: both ends in front (> 0.1 m)
+    and the segment at least partly inside the image."""
+    Tcw = inv_T(T_world_cam)
+    pc = ends @ Tcw[:3, :3].T + Tcw[:3, 3]
+    z = pc[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.stack([cam.fx * pc[..., 0] / z + cam.cx, cam.fy * pc[..., 1] / z + cam.cy], axis=-1)
+    inside = (uv[..., 0] >= 0) & (uv[..., 0] < cam.width) & (uv[..., 1] >= 0) & (uv[..., 1] < cam.height)
+    ok = (z > 0.1).all(axis=1) & inside.any(axis=1)
+    return uv.reshape(-1, 4), ok
+
+
+class LineSlam:
+    """The line half of the SLAM system; see the module docstring."""
+
+    def __init__(self, slam_map, cam: PinholeCamera, stereo_cam, sensor: SensorKind, cfg: LineConfig, backend):
+        self.map, self.cam, self.stereo_cam, self.sensor, self.cfg, self.backend = slam_map, cam, stereo_cam, sensor, cfg, backend
+        self.lmap = LineMap()
+        self.extractor = LineExtractor(cfg)
+        self.K_L = pl.line_projection_matrix(cam.fx, cam.fy, cam.cx, cam.cy)
+        if sensor != "rgbd":
+            log.warning("lines: line landmarks are created from RGB-D depth only; %s runs with points only", sensor)
+
+    def detect(self, image: np.ndarray) -> LineFeatures:
+        """Segments of a frame; none without depth (monocular / stereo): no line landmark could use them,
+        and LSD costs ~40 ms (640x480) to ~250 ms (KITTI 1241x376) per frame on this machine."""
+        if self.sensor != "rgbd":
+            return LineFeatures.empty(self.extractor.dim)
+        return self.extractor.detect(image, self.cam)
+
+    # -- tracking -------------------------------------------------------------------------------------------
+    def local_lines(self, ref_kf: int, local_keyframes: int) -> np.ndarray:
+        kfs, _ = self.map.local_map(ref_kf, local_keyframes)
+        return self.lmap.seen_by(kfs)
+
+    def match(self, T_world_cam: np.ndarray, lf: LineFeatures, lids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Projection matching of map lines ``lids`` into segments ``lf`` -> (matched line ids, segment indices)."""
+        if len(lids) == 0 or len(lf) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        ends = np.array([self.lmap.lines[int(i)].ends for i in lids])
+        pred, vis = project_segments(ends, T_world_cam, self.cam)
+        idx = np.flatnonzero(vis)
+        desc = np.array([self.lmap.lines[int(i)].desc for i in lids[idx]]).reshape(len(idx), -1)
+        m = match_lines(pred[idx], desc, lf, self.cfg)
+        return lids[idx[m[:, 0]]], m[:, 1]
+
+    def track(self, T_world_cam: np.ndarray, point_xyz: np.ndarray, point_uv: np.ndarray, point_ur: np.ndarray,
+              lf: LineFeatures, ref_kf: int, local_keyframes: int) -> tuple[np.ndarray, np.ndarray]:
+        """Refine the tracked pose with the point inliers and the matched lines.
+
+        -> (T_world_cam, line id per segment of ``lf`` (-1: none or outlier)).
+        """
+        line_ids = np.full(len(lf), -1, np.int64)
+        lids, segi = self.match(T_world_cam, lf, self.local_lines(ref_kf, local_keyframes))
+        if len(lids) == 0:
+            return T_world_cam, line_ids
+        L = np.array([self.lmap.lines[int(i)].L for i in lids])
+        T, _, lin = refine_pose_points_lines(T_world_cam, point_xyz, point_uv, point_ur, L, lf.segs[segi], self.K_L,
+                                             self.stereo_cam, self.backend, self.cfg.pixel_sigma, self.cfg.weight)
+        line_ids[segi[lin]] = lids[lin]
+        return T, line_ids
+
+    def refine_tracked(self, T_world_cam: np.ndarray, point_ids: np.ndarray, feats, ur: np.ndarray, lf: LineFeatures | None,
+                       ref_kf: int, local_keyframes: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """``track`` from the point tracker's result: point_ids (N,) map point per keypoint (-1 none)."""
+        if lf is None:
+            return T_world_cam, None
+        kp = np.flatnonzero(point_ids >= 0)
+        xyz = self.map.points_xyz(point_ids[kp])
+        return self.track(T_world_cam, xyz, feats.uv[kp], ur[kp], lf, ref_kf, local_keyframes)
+
+    # -- mapping --------------------------------------------------------------------------------------------
+    def add_keyframe(self, kf_id: int, T_world_cam: np.ndarray, lf: LineFeatures, line_ids: np.ndarray | None,
+                     depth_map: np.ndarray | None) -> int:
+        """Store the keyframe's segments, attach tracked observations, create lines from depth. -> new lines."""
+        self.cull(kf_id)
+        self.lmap.kf_feats[kf_id] = lf
+        self.lmap.kf_ids[kf_id] = np.full(len(lf), -1, np.int64)
+        if line_ids is not None:
+            for i in np.flatnonzero(line_ids >= 0):
+                if int(line_ids[i]) in self.lmap.lines:
+                    self.lmap.add_observation(int(line_ids[i]), kf_id, int(i))
+        if depth_map is None or len(lf) == 0:
+            return 0
+        free = np.flatnonzero(self.lmap.kf_ids[kf_id] < 0)
+        free = free[np.argsort(-lf.length[free], kind="stable")]
+        n = 0
+        for i in free:
+            fit = self.fit_from_depth(lf.raw[i], lf.segs[i], depth_map, T_world_cam)
+            if fit is None:
+                continue
+            self.lmap.add_line(fit[0], fit[1], kf_id, int(i))
+            n += 1
+            if n >= self.cfg.max_new_lines:
+                break
+        return n
+
+    def fit_from_depth(self, raw: np.ndarray, seg: np.ndarray, depth_map: np.ndarray, T_world_cam: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray] | None:
+        """(L (6,), ends (2,3)) of a segment from depth sampled along it, or None when the samples do not lie
+        on one 3-D line (a depth edge, missing depth)."""
+        h, w = depth_map.shape[:2]
+        t = np.linspace(0.05, 0.95, 11)
+        d = raw[2:] - raw[:2]
+        nrm = np.array([-d[1], d[0]]) / max(np.hypot(*d), 1e-9)
+        zs = []
+        for off in (-2.0, 2.0):
+            p = raw[:2] + t[:, None] * d + off * nrm
+            ix = np.clip(np.round(p).astype(np.int64), 0, [w - 1, h - 1])
+            zs.append(depth_map[ix[:, 1], ix[:, 0]].astype(np.float64))
+        z = np.fmin(zs[0], zs[1])  # the nearer side; NaN only where both are missing
+        ok = np.isfinite(z) & (z > 0.1) & (z < 10.0)
+        if self.cfg.surface_only:  # both sides at one depth: a texture / crease edge, not an occluding contour
+            ok &= np.abs(zs[0] - zs[1]) <= self.cfg.depth_fit_m + 0.02 * z
+        if ok.sum() < self.cfg.min_depth_samples:
+            return None
+        uv = seg[:2] + t[:, None] * (seg[2:] - seg[:2])
+        P = self.cam.backproject(uv[ok], z[ok])
+        c = P.mean(axis=0)
+        _, sv, vt = np.linalg.svd(P - c)
+        u = vt[0]
+        dev = np.linalg.norm((P - c) - np.outer((P - c) @ u, u), axis=1)
+        if dev.max() > self.cfg.depth_fit_m + 0.01 * float(z[ok].mean()):
+            return None
+        Lc = np.concatenate([np.cross(c, u), u])
+        L = pl.transform(Lc, T_world_cam)
+        a, b = pl.clip_to_segment(L[None], seg[None], T_world_cam, self.cam.K)
+        return L, np.stack([a[0], b[0]])
+
+    def ba_problem(self, kf_ids: list[int]) -> LineProblem | None:
+        """Lines seen by the BA's keyframes (at most ``ba_max_lines``, most observed first) with >= 2 views."""
+        lids = self.lmap.seen_by(kf_ids)
+        kset = set(kf_ids)
+        cand = [(len([k for k in self.lmap.lines[int(i)].observations if k in kset]), int(i)) for i in lids]
+        cand = sorted([c for c in cand if c[0] >= 2], key=lambda c: (-c[0], c[1]))[: self.cfg.ba_max_lines]
+        if not cand:
+            return None
+        kf, ln, seg = [], [], []
+        for _, j in cand:
+            for k, idx in self.lmap.lines[j].observations.items():
+                if k in kset:
+                    kf.append(k), ln.append(j), seg.append(self.lmap.kf_feats[k].segs[idx])
+        return LineProblem({j: self.lmap.lines[j].L for _, j in cand}, np.array(kf), np.array(ln), np.array(seg),
+                           sigma=self.cfg.pixel_sigma)
+
+    def apply_ba(self, lp: LineProblem | None, lines: dict[int, np.ndarray], inliers: np.ndarray | None,
+                 poses: dict[int, np.ndarray]) -> None:
+        """Write BA's lines back (end points re-clipped to the first view) and drop outlier observations."""
+        if lp is None:
+            return
+        by_kf: dict[int, list[tuple[MapLine, np.ndarray]]] = {}
+        for j, L in lines.items():
+            ml = self.lmap.lines.get(j)
+            if ml is None or not np.all(np.isfinite(L)):
+                continue
+            ml.L = -L if L[3:] @ ml.L[3:] < 0 else L  # keep the orientation
+            by_kf.setdefault(min(ml.observations), []).append((ml, ml.L))
+        for k0, items in by_kf.items():  # end points re-clipped to the first view, batched per keyframe
+            T = poses.get(k0, self.map.keyframes[k0].T_world_cam)
+            segs = np.array([self.lmap.kf_feats[k0].segs[ml.observations[k0]] for ml, _ in items])
+            a, b = pl.clip_to_segment(np.array([L for _, L in items]), segs, T, self.cam.K)
+            for (ml, _), pa, pb in zip(items, a, b):
+                if np.all(np.isfinite(pa)) and np.all(np.isfinite(pb)):
+                    ml.ends = np.stack([pa, pb])
+        if inliers is not None:
+            for i in np.flatnonzero(~np.asarray(inliers, bool)):
+                self.lmap.remove_observation(int(lp.obs_line[i]), int(lp.obs_kf[i]))
+
+    def cull(self, cur_kf: int, age: int = 3) -> None:
+        """Lines still seen by one keyframe ``age`` keyframes after their creation are removed."""
+        for j in [j for j, ml in self.lmap.lines.items() if cur_kf - ml.first_kf >= age and len(ml.observations) < 2]:
+            self.lmap.remove_line(j)
+
+    def write_ply(self, path: Path) -> Path:
+        """Map lines as a PLY line set (open3d imported here only)."""
+        import open3d as o3d
+
+        ends = np.array([ml.ends for ml in self.lmap.lines.values()], dtype=np.float64).reshape(-1, 3)
+        if len(ends) == 0:  # open3d refuses an empty line set; the file still exists, with no elements
+            Path(path).write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty double x\nproperty double y\n"
+                                  "property double z\nelement edge 0\nproperty int vertex1\nproperty int vertex2\nend_header\n")
+            return path
+        ls = o3d.geometry.LineSet()
+        ls.points = o3d.utility.Vector3dVector(ends)
+        ls.lines = o3d.utility.Vector2iVector(np.arange(len(ends)).reshape(-1, 2))
+        if not o3d.io.write_line_set(str(path), ls):
+            raise OSError(f"{path}: could not write the line map")
+        return path
+
+    def stats(self) -> dict[str, int]:
+        return {"lines": len(self.lmap.lines), "line_observations": sum(len(m.observations) for m in self.lmap.lines.values())}
