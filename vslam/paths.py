@@ -11,7 +11,7 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 def data_root() -> Path:
     env = os.environ.get("VSLAM_DATA")
     if env:
-        return Path(env).expanduser()
+        return Path(env).expanduser().resolve()
     for cand in (REPO_ROOT.parent / "shared" / "data", Path.cwd().parent / "shared" / "data"):
         if cand.is_dir():
             return cand
