@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from vslam.backend.line_factor import _skew_stack
-from vslam.backend.pose_only import _MIN_OBS, _STEP_TOL, _classify, _linearize, _so3_exp
+from vslam.backend.pose_only import _MIN_OBS, _classify, _linearize, lm_pose
 from vslam.backend.projection import chi2_thresholds, measurement_matrix
 from vslam.geometry.se3 import inv_T
 
@@ -118,30 +118,5 @@ def _cost_H_g(R, t, P, Z, S, w, L, G, K_L, lw, camera, huber_k):
 
 
 def _lm(T_cw, P, Z, S, w, L, G, K_L, lw, camera, huber_k, iterations) -> np.ndarray:
-    """LM on points + lines (as ``pose_only._levenberg_marquardt``)."""
-    R, t = T_cw[:3, :3].copy(), T_cw[:3, 3].copy()
-    cost, H, g = _cost_H_g(R, t, P, Z, S, w, L, G, K_L, lw, camera, huber_k)
-    lam = 1e-5
-    for _ in range(iterations):
-        try:
-            delta = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-9), g)
-        except np.linalg.LinAlgError:
-            break
-        if np.linalg.norm(delta) < _STEP_TOL:
-            break
-        dR = _so3_exp(delta[:3])
-        R2, t2 = dR @ R, dR @ t + delta[3:]
-        c2, H2, g2 = _cost_H_g(R2, t2, P, Z, S, w, L, G, K_L, lw, camera, huber_k)
-        if c2 <= cost:
-            small = cost - c2 <= 1e-9 * cost
-            R, t, cost, H, g = R2, t2, c2, H2, g2
-            lam = max(lam * 0.1, 1e-9)
-            if small:
-                break
-        else:
-            lam *= 10.0
-            if lam > 1e8:
-                break
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    return T
+    """LM on points + lines (``pose_only.lm_pose`` with this cost)."""
+    return lm_pose(T_cw, lambda R, t: _cost_H_g(R, t, P, Z, S, w, L, G, K_L, lw, camera, huber_k), iterations)

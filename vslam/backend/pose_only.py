@@ -124,11 +124,19 @@ def _classify(T_cw, P, Z, S, sig, thr, camera) -> np.ndarray:
 
 def _levenberg_marquardt(T_cw, P, Z, S, w, camera, huber_k, iterations) -> np.ndarray:
     """LM on the robust cost; (4,4) T_cam_world in -> refined T_cam_world out."""
-    R, t = T_cw[:3, :3].copy(), T_cw[:3, 3].copy()
     PT = np.ascontiguousarray(P.T)  # (3,n): row-wise vector maths below is contiguous
     ZT = np.ascontiguousarray(Z.T)
     Sf = S.astype(np.float64)
-    cost, H, g = _linearize(R, t, PT, ZT, Sf, w, camera, huber_k)
+    return lm_pose(T_cw, lambda R, t: _linearize(R, t, PT, ZT, Sf, w, camera, huber_k), iterations)
+
+
+def lm_pose(T_cw: np.ndarray, linearize, iterations: int) -> np.ndarray:
+    """Levenberg-Marquardt on one pose, shared by every pose-only cost (points; points + lines).
+
+    ``linearize(R, t) -> (robust cost, H (6,6), g (6,))`` at T_cam_world = [R | t], in the left-perturbation
+    order (w, v). (4,4) T_cam_world in -> refined T_cam_world out."""
+    R, t = T_cw[:3, :3].copy(), T_cw[:3, 3].copy()
+    cost, H, g = linearize(R, t)
     lam = 1e-5
     for _ in range(iterations):
         Hd = H + lam * np.diag(np.diag(H) + 1e-9)
@@ -140,7 +148,7 @@ def _levenberg_marquardt(T_cw, P, Z, S, w, camera, huber_k, iterations) -> np.nd
             break  # converged: the step would change nothing measurable
         dR = _so3_exp(delta[:3])
         R_new, t_new = dR @ R, dR @ t + delta[3:]
-        cost_new, H_new, g_new = _linearize(R_new, t_new, PT, ZT, Sf, w, camera, huber_k)
+        cost_new, H_new, g_new = linearize(R_new, t_new)
         if cost_new <= cost:
             small = cost - cost_new <= _COST_RTOL * cost
             R, t, cost, H, g = R_new, t_new, cost_new, H_new, g_new

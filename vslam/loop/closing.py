@@ -196,13 +196,7 @@ class LoopCloser:
                             np.array(ouv).reshape(-1, 2), np.array(our, dtype=np.float64))
         backend = dataclasses.replace(self.backend, max_iterations=self.cfg.global_ba_iterations)
         res = local_bundle_adjustment(problem, self.verifier.stereo_cam, backend)
-        for k, T in res.poses.items():
-            m.keyframes[k].T_world_cam = np.asarray(T, dtype=np.float64)
-        for p, X in res.points.items():
-            if p in m.points:
-                m.points[p].xyz = np.asarray(X, dtype=np.float64)
-        for i in np.flatnonzero(~np.asarray(res.inliers, bool)):
-            m.remove_observation(int(opt[i]), int(okf[i]))
+        m.apply_adjustment(res.poses, res.points, res.inliers, okf, opt)
         log.debug("global BA: %d keyframes, %d observations, %.0f ms", len(m.keyframes), len(okf), res.ms["total"])
 
     def write_stats(self, path: Path) -> Path:

@@ -241,11 +241,4 @@ class LocalMapper:
             res = local_bundle_adjustment(problem, self.stereo_cam, self.backend)
         if self.lines is not None:
             self.lines.apply_ba(problem.lines, getattr(res, "lines", {}), getattr(res, "line_inliers", None), res.poses)
-        for k, T in res.poses.items():
-            if k not in fixed:
-                m.keyframes[k].T_world_cam = np.asarray(T, dtype=np.float64)
-        for p, X in res.points.items():
-            if p in m.points:
-                m.points[p].xyz = np.asarray(X, dtype=np.float64)
-        for i in np.flatnonzero(~np.asarray(res.inliers, bool)):
-            m.remove_observation(int(opt[i]), int(okf[i]))
+        m.apply_adjustment(res.poses, res.points, res.inliers, okf, opt, set(fixed))

@@ -179,6 +179,18 @@ class Map:
         dist = descriptor_rows(D[a], D[b]).reshape(n, n)
         mp.descriptor = D[int(np.argmin(np.median(dist, axis=1)))].copy()
 
+    def apply_adjustment(self, poses: dict, points: dict, inliers: np.ndarray, obs_kf, obs_pt, fixed=()) -> None:
+        """Write a bundle adjustment back: keyframe poses (not those in ``fixed``), the points still in the map,
+        and drop the observations (obs_kf[i], obs_pt[i]) the BA classified as outliers (``inliers[i]`` False)."""
+        for k, T in poses.items():
+            if k not in fixed:
+                self.keyframes[k].T_world_cam = np.asarray(T, dtype=np.float64)
+        for p, X in points.items():
+            if p in self.points:
+                self.points[p].xyz = np.asarray(X, dtype=np.float64)
+        for i in np.flatnonzero(~np.asarray(inliers, bool)):
+            self.remove_observation(int(obs_pt[i]), int(obs_kf[i]))
+
     def stats(self) -> dict[str, int]:
         n_obs = sum(len(p.observations) for p in self.points.values())
         return {"keyframes": len(self.keyframes), "points": len(self.points), "observations": n_obs}
