@@ -73,3 +73,16 @@ def test_inertial_off_changes_nothing():
     _, a, _, _ = _run(seq, frames, SlamConfig())
     _, b, _, _ = _run(seq, frames, SlamConfig(inertial=VioConfig(enabled=False)))
     np.testing.assert_array_equal(a.poses, b.poses)
+
+
+def test_inertial_without_imu_is_a_one_line_config_error():
+    """A sequence with no IMU (TUM, KITTI) and slam.inertial on: a ConfigError naming the switch, not a traceback
+    from the first keyframe's static initialisation."""
+    import dataclasses
+
+    from vslam.errors import ConfigError
+
+    seq = SyntheticSequence(SyntheticConfig(n_frames=2, width=160, height=120, fx=131.25, fy=131.25), "rgbd")
+    calib = dataclasses.replace(seq.calibration, imu=None)
+    with pytest.raises(ConfigError, match="slam.inertial.enabled"):
+        SlamTracker(calib, "rgbd", SlamConfig(inertial=VioConfig(enabled=True)))

@@ -161,7 +161,7 @@ class SlamTracker:
             if self.dynamic is not None:
                 feats, depth, ur = self._drop_moving(res, feats, depth, ur)
             t3 = time.perf_counter()
-            vio_kf = self.vio is not None and res.ok and self.vio.wants_keyframe(frame.timestamp)
+            vio_kf = self.vio is not None and res.ok and est.status != "no_depth" and self.vio.wants_keyframe(frame.timestamp)
             if res.ok and not self.cfg.localize_only and (self._want_keyframe(frame, res.n_inliers, res.point_ids, depth) or vio_kf):
                 kf = self.map.add_keyframe(frame.index, frame.timestamp, self.T_world_cam, feats, depth, ur)
                 if self.vio is not None:

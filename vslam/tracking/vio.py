@@ -43,7 +43,7 @@ from vslam.backend.ba import BackendConfig, BAProblem, BAResult, StereoCamera
 from vslam.backend.inertial import (ImuChain, InertialBAConfig, initial_bias_covariance, prior_covariances,
                                     visual_inertial_bundle_adjustment)
 from vslam.data.types import Calibration, Frame, ImuSamples, SensorKind
-from vslam.errors import InertialError
+from vslam.errors import ConfigError, InertialError
 from vslam.geometry.se3 import inv_T, make_T
 from vslam.inertial.config import InertialConfig
 
@@ -127,6 +127,8 @@ class Vio:
         from vslam.inertial.preintegration import make_params
 
         self.cfg, self.sensor, self.map = cfg, sensor, slam_map
+        if calibration.imu is None:  # a user mistake (e.g. inertial on a TUM or KITTI sequence): one line, no traceback
+            raise ConfigError("slam.inertial.enabled is set, but the sequence has no IMU (EuRoC/TUM-VI imu0/ or synthetic)")
         self.noise = cfg.imu.noise(calibration.imu)
         self.params = make_params(self.noise, cfg.imu.gravity, None, cfg.imu.integration_sigma)
         self.T_bc = np.asarray(calibration.T_body_cam0, dtype=np.float64)
@@ -267,13 +269,16 @@ class Vio:
         from vslam.inertial.init import static_init
 
         c = self.cfg.imu
+        if self._t_first is None or len(self.buf.t) < 2:  # no IMU samples yet
+            return None
         t0 = self._t_first
         t1 = min(float(self.buf.t[-1]), t0 + c.static_window_s)
         if t1 - t0 < min(0.5, c.static_window_s):  # a motion test needs a few hundred ms
             return None
         try:
             st = static_init(ImuSamples(self.buf.t, self.buf.gyro, self.buf.accel), t0, t1, c.gravity,
-                             c.still_accel_std, c.still_gyro_std)
+                             c.still_accel_std, c.still_gyro_std, smooth_s=c.still_smooth_s,
+                             max_force_error=c.still_max_force_error)
         except InertialError as e:
             log.info("static initialisation impossible (%s)", e)
             self._static_failed = True
