@@ -70,3 +70,17 @@ def test_bad_files_are_reported(tmp_path):
     np.savez(bad, header=np.frombuffer(b'{"format": "other", "version": 1}', np.uint8))
     with pytest.raises(MapFileError, match="format"):
         load_map(bad)
+
+
+def test_damaged_files_are_one_line_errors(saved, tmp_path):
+    """A truncated file, a right header over missing arrays: MapFileError naming the file, never a traceback."""
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(saved.read_bytes()[:2000])
+    with pytest.raises(MapFileError, match="cut.npz: not a vslam map file"):
+        load_map(cut)
+    with np.load(saved, allow_pickle=False) as f:
+        arrays = {k: f[k] for k in f.files if k != "kf_offset"}
+    gap = tmp_path / "gap.npz"
+    np.savez(gap, **arrays)
+    with pytest.raises(MapFileError, match="gap.npz: corrupt map file"):
+        load_map(gap)

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from vslam.dynamic.model import DetectorConfig, YoloDetector, decode
+from vslam.errors import ConfigError
 from vslam.dynamic.nms import batched_nms
 
 
@@ -94,7 +95,9 @@ def save_checkpoint(path: str | Path, model: YoloDetector, names: list[str], **e
 
 
 def load_model(path: str | Path) -> tuple[YoloDetector, dict]:
-    ckpt = torch.load(Path(path), map_location="cpu", weights_only=False)
+    if not Path(path).is_file():
+        raise ConfigError(f"{path}: detector weights not found (slam.dynamic.weights)")
+    ckpt = torch.load(Path(path), map_location="cpu", weights_only=True)  # weights only: a config path never runs code
     model = YoloDetector(DetectorConfig(**ckpt["config"]))
     model.load_state_dict(ckpt["model"])
     return model, ckpt

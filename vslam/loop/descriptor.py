@@ -14,6 +14,7 @@ from typing import Protocol
 
 import numpy as np
 
+from vslam.errors import ConfigError
 from vslam.features.base import Features
 from vslam.loop.vocabulary import Vocabulary, default_vocabulary_path
 
@@ -58,4 +59,4 @@ def make_place_descriptor(kind: str, vocabulary: str = "") -> PlaceDescriptor:
     """Registry by name: ``bow`` (vocabulary file; "" = the shipped models/orb_bow_k512.npz)."""
     if kind == "bow":
         return BowDescriptor(Vocabulary.load(Path(vocabulary) if vocabulary else default_vocabulary_path()))
-    raise ValueError(f"unknown place descriptor {kind!r} (known: bow)")
+    raise ConfigError(f"slam.loop.descriptor: unknown place descriptor {kind!r} (known: bow)")

@@ -12,6 +12,8 @@ never executes code when loaded.
 from __future__ import annotations
 
 import json
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -94,11 +96,20 @@ def load_map(path: str | Path) -> LoadedMap:
         with np.load(path, allow_pickle=False) as f:
             z = {k: f[k] for k in f.files}  # NpzFile decompresses on every access: read each array once
         header = json.loads(bytes(z["header"]).decode())
-    except (OSError, ValueError, KeyError) as e:
+        if not isinstance(header, dict):
+            raise ValueError("header is not a JSON object")
+    except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, zlib.error) as e:
         raise MapFileError(f"{path}: not a vslam map file ({e})") from None
     if header.get("format") != FORMAT or header.get("version") != FORMAT_VERSION:
         raise MapFileError(f"{path}: format {header.get('format')!r} version {header.get('version')!r}, "
                            f"expected {FORMAT!r} version {FORMAT_VERSION}")
+    try:
+        return _rebuild(path, z, header)
+    except (KeyError, IndexError, ValueError, TypeError, AttributeError) as e:  # arrays missing or inconsistent
+        raise MapFileError(f"{path}: corrupt map file ({e!r})") from None
+
+
+def _rebuild(path: Path, z: dict, header: dict) -> LoadedMap:
     m = Map()
     off = z["kf_offset"]
     for i, kid in enumerate(z["kf_id"].tolist()):
@@ -116,7 +127,9 @@ def load_map(path: str | Path) -> LoadedMap:
             if pid not in m.points:
                 raise MapFileError(f"{path}: keyframe {kf.id} observes unknown point {pid}")
             m.points[pid].observations[kf.id] = kp
-    m._next_kf, m._next_pt = int(header["next_kf"]), int(header["next_pt"])
+    # never reuse an id, even if the header's counters are behind the stored ids
+    m._next_kf = max(int(header["next_kf"]), max(m.keyframes, default=-1) + 1)
+    m._next_pt = max(int(header["next_pt"]), max(m.points, default=-1) + 1)
     db = KeyframeDatabase(int(header["descriptor_dim"]))
     for kid, v in zip(z["kf_id"].tolist(), z["kf_place"]):
         db.add(kid, v)

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from vslam.errors import ConfigError
+
 log = logging.getLogger(__name__)
 
 VOCAB_VERSION = 1
@@ -62,10 +64,17 @@ class Vocabulary:
 
     @staticmethod
     def load(path: str | Path) -> Vocabulary:
-        with np.load(Path(path)) as z:
-            if int(z["version"]) != VOCAB_VERSION:
-                raise ValueError(f"{path}: vocabulary version {int(z['version'])}, expected {VOCAB_VERSION}")
-            return Vocabulary(z["words"].astype(np.uint8), z["idf"].astype(np.float32))
+        if not Path(path).is_file():
+            raise ConfigError(f"{path}: vocabulary file not found (slam.loop.vocabulary)")
+        try:
+            with np.load(Path(path), allow_pickle=False) as z:
+                version = int(z["version"])
+                words, idf = z["words"].astype(np.uint8), z["idf"].astype(np.float32)
+        except (OSError, ValueError, KeyError) as e:
+            raise ConfigError(f"{path}: not a vocabulary file ({e})") from None
+        if version != VOCAB_VERSION:
+            raise ConfigError(f"{path}: vocabulary version {version}, expected {VOCAB_VERSION}")
+        return Vocabulary(words, idf)
 
 
 def _kmeanspp(X: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:

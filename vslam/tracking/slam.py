@@ -127,7 +127,7 @@ class SlamTracker:
             if self.dynamic is not None:
                 self.dynamic.observe(self.T_world_cam, est.tracked)
             est.status = "tracked" if est.tracked else "uninitialised"
-            if self.mono_init is not None and self.cfg.backfill:
+            if self.mono_init is not None and self.cfg.backfill and not self.cfg.load_map:  # saved keyframes are not this run's frames
                 if est.tracked:
                     est.backfill = self._backfill()
                 else:  # the initialiser retries for max_tries frames per reference: older frames share little
