@@ -54,13 +54,8 @@ def refine_pose(
 ) -> tuple[np.ndarray, np.ndarray]:
     """See ``vslam.backend.ba.optimize_pose``; ``sigma``: pixel std per observation (None: cfg.pixel_sigma)."""
     T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
-    pts = np.asarray(pts_world, dtype=np.float64).reshape(-1, 3)
-    meas, stereo = measurement_matrix(uv, ur)
+    pts, meas, stereo, sig, valid = _observations(pts_world, uv, ur, camera, cfg, sigma)
     n = pts.shape[0]
-    sig = np.broadcast_to(np.asarray(cfg.pixel_sigma if sigma is None else sigma, dtype=np.float64), (n,))
-    valid = np.isfinite(pts).all(axis=1) & np.isfinite(meas[:, :2]).all(axis=1) & (sig > 0)
-    if camera.baseline <= 0:
-        stereo = np.zeros(n, dtype=bool)  # no baseline, no stereo residual
     inliers = np.zeros(n, dtype=bool)
     T_cw = inv_T(T_world_cam)
     P, Z, S, w = pts[valid], meas[valid], stereo[valid], 1.0 / sig[valid]
@@ -97,13 +92,7 @@ def pose_covariance(
     pixel sigma, so this assumes exact map points: a lower bound that still grows with few, clustered or
     depth-less observations. All-inf when fewer than 3 usable observations or the system is singular.
     """
-    pts = np.asarray(pts_world, dtype=np.float64).reshape(-1, 3)
-    meas, stereo = measurement_matrix(uv, ur)
-    n = pts.shape[0]
-    sig = np.broadcast_to(np.asarray(cfg.pixel_sigma if sigma is None else sigma, dtype=np.float64), (n,))
-    valid = np.isfinite(pts).all(axis=1) & np.isfinite(meas[:, :2]).all(axis=1) & (sig > 0)
-    if camera.baseline <= 0:
-        stereo = np.zeros(n, dtype=bool)
+    pts, meas, stereo, sig, valid = _observations(pts_world, uv, ur, camera, cfg, sigma)
     unknown = np.full((6, 6), np.inf)
     if valid.sum() < _MIN_OBS:
         return unknown
@@ -115,6 +104,18 @@ def pose_covariance(
     except np.linalg.LinAlgError:
         return unknown
     return cov if np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0) else unknown
+
+
+def _observations(pts_world, uv, ur, camera, cfg, sigma):
+    """-> pts (N,3), meas (N,3), stereo (N,) bool, sigma (N,) px, valid (N,) bool: the rows a pose can use."""
+    pts = np.asarray(pts_world, dtype=np.float64).reshape(-1, 3)
+    meas, stereo = measurement_matrix(uv, ur)
+    n = pts.shape[0]
+    sig = np.broadcast_to(np.asarray(cfg.pixel_sigma if sigma is None else sigma, dtype=np.float64), (n,))
+    valid = np.isfinite(pts).all(axis=1) & np.isfinite(meas[:, :2]).all(axis=1) & (sig > 0)
+    if camera.baseline <= 0:
+        stereo = np.zeros(n, dtype=bool)  # no baseline, no stereo residual
+    return pts, meas, stereo, sig, valid
 
 
 def _classify(T_cw, P, Z, S, sig, thr, camera) -> np.ndarray:
