@@ -98,6 +98,19 @@ def perturb(rng, problem: BAProblem, trans_m=0.02, rot_deg=1.0, pt_m=0.05) -> BA
                      problem.obs_uv.copy(), problem.obs_ur.copy(), problem.obs_sigma)
 
 
+def pose_problem(rng, n: int, stereo_frac: float):
+    """One camera seeing ``n`` points 2-15 m away, uniformly over the image, exact measurements; a random
+    ``1 - stereo_frac`` of them mono (ur NaN). -> (T_world_cam, world points (n,3), uv (n,2), ur (n,))."""
+    T = camera_path(rng, 1)[0]
+    uvc = rng.uniform([0, 0], [W, H], (n, 2))
+    z = rng.uniform(2.0, 15.0, n)
+    pc = np.column_stack([(uvc[:, 0] - CAM.cx) / CAM.fx * z, (uvc[:, 1] - CAM.cy) / CAM.fy * z, z])
+    pw = pc @ T[:3, :3].T + T[:3, 3]
+    uv, ur, _ = project_stereo(T, pw, CAM)
+    ur[rng.random(n) >= stereo_frac] = np.nan
+    return T, pw, uv, ur
+
+
 def add_outliers(rng, uv: np.ndarray, ur: np.ndarray, frac: float, px: float = 30.0) -> np.ndarray:
     """Shift a random ``frac`` of the observations by ``px`` pixels (2-D for mono, 3-D for stereo); -> (N,) bool mask."""
     n = uv.shape[0]

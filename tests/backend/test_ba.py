@@ -226,13 +226,7 @@ def test_local_ba_mono_camera_ignores_ur():
 
 
 def _pose_problem(rng, n, stereo_frac, outliers):
-    T = S.camera_path(rng, 1)[0]
-    uvc = rng.uniform([0, 0], [S.W, S.H], (n, 2))
-    z = rng.uniform(2.0, 15.0, n)
-    pc = np.column_stack([(uvc[:, 0] - S.CAM.cx) / S.CAM.fx * z, (uvc[:, 1] - S.CAM.cy) / S.CAM.fy * z, z])
-    pw = pc @ T[:3, :3].T + T[:3, 3]
-    uv, ur, _ = project_stereo(T, pw, S.CAM)
-    ur[rng.random(n) >= stereo_frac] = np.nan
+    T, pw, uv, ur = S.pose_problem(rng, n, stereo_frac)
     bad = S.add_outliers(rng, uv, ur, outliers)
     return T, pw, uv, ur, bad
 

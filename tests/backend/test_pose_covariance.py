@@ -10,19 +10,7 @@ import pytest
 from tests.backend import _synth as S
 from vslam.backend.ba import BackendConfig, optimize_pose
 from vslam.backend.pose_only import pose_covariance
-from vslam.backend.projection import project_stereo
 from vslam.geometry.se3 import inv_T, so3_log
-
-
-def _problem(rng, n, stereo_frac):
-    T = S.camera_path(rng, 1)[0]
-    uvc = rng.uniform([0, 0], [S.W, S.H], (n, 2))
-    z = rng.uniform(2.0, 15.0, n)
-    pc = np.column_stack([(uvc[:, 0] - S.CAM.cx) / S.CAM.fx * z, (uvc[:, 1] - S.CAM.cy) / S.CAM.fy * z, z])
-    pw = pc @ T[:3, :3].T + T[:3, 3]
-    uv, ur, _ = project_stereo(T, pw, S.CAM)
-    ur[rng.random(n) >= stereo_frac] = np.nan
-    return T, pw, uv, ur
 
 
 def _left_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
@@ -33,7 +21,7 @@ def _left_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
 
 def _monte_carlo(cfg, stereo_frac, trials=300):
     rng = np.random.default_rng(5)
-    T, pw, uv, ur = _problem(rng, 60, stereo_frac)
+    T, pw, uv, ur = S.pose_problem(rng, 60, stereo_frac)
     errs = []
     for _ in range(trials):
         Te, _ = optimize_pose(T, pw, uv + rng.normal(0, 1.0, uv.shape), ur + rng.normal(0, 1.0, ur.shape), S.CAM, cfg, sigma=1.0)
@@ -61,7 +49,7 @@ def test_robust_scheme_spread_stays_near_the_prediction():
 
 def test_covariance_scales_and_degenerates():
     rng = np.random.default_rng(6)
-    T, pw, uv, ur = _problem(rng, 100, 0.5)
+    T, pw, uv, ur = S.pose_problem(rng, 100, 0.5)
     cfg = BackendConfig()
     c1 = pose_covariance(T, pw, uv, ur, S.CAM, cfg, sigma=1.0)
     np.testing.assert_allclose(pose_covariance(T, pw, uv, ur, S.CAM, cfg, sigma=2.0), 4.0 * c1, rtol=1e-9)

@@ -25,7 +25,7 @@ from vslam.features.matching import match_by_projection, match_mutual
 from vslam.geometry.se3 import inv_T, make_T
 from vslam.loop.config import LoopConfig
 from vslam.mapping.map import Map
-from vslam.tracking.tracker import project
+from vslam.tracking.tracker import pnp_setup, project
 
 
 @dataclass
@@ -46,12 +46,7 @@ class LoopVerifier:
 
     def __init__(self, cam: PinholeCamera, stereo_cam: StereoCamera, cfg: LoopConfig, backend: BackendConfig):
         self.cam, self.stereo_cam, self.cfg, self.backend = cam, stereo_cam, cfg, backend
-        self.pycam = pycolmap.Camera(model="PINHOLE", width=cam.width, height=cam.height, params=[cam.fx, cam.fy, cam.cx, cam.cy])
-        self.ao = pycolmap.AbsolutePoseEstimationOptions()
-        self.ao.ransac.max_error = cfg.ransac_px
-        self.ao.ransac.random_seed = cfg.seed
-        self.ao.ransac.min_num_trials = 100
-        self.ao.ransac.max_num_trials = 2000
+        self.pycam, self.ao = pnp_setup(cam, cfg.ransac_px, cfg.seed, 100, 2000)
 
     def candidate_points(self, m: Map, candidate: int, max_kf: int | None = None) -> np.ndarray:
         """Map point ids seen by the candidate and its most covisible keyframes with id <= ``max_kf``

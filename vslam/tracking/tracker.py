@@ -99,18 +99,26 @@ def need_keyframe(n_inliers: int, ref_tracked: int, frames_since: int, n_close_t
     return bool((weak and n_inliers > 15) or (frames_since >= cfg.kf_max_frames and n_inliers >= cfg.min_inliers))
 
 
+def pnp_setup(cam: PinholeCamera, max_error_px: float, seed: int, min_trials: int,
+              max_trials: int) -> tuple[pycolmap.Camera, pycolmap.AbsolutePoseEstimationOptions]:
+    """pycolmap pinhole camera of ideal pixels + seeded LO-RANSAC options for ``estimate_and_refine_absolute_pose``
+    (one setup for tracking and loop verification; the fixed seed keeps runs deterministic)."""
+    pycam = pycolmap.Camera(model="PINHOLE", width=cam.width, height=cam.height, params=[cam.fx, cam.fy, cam.cx, cam.cy])
+    ao = pycolmap.AbsolutePoseEstimationOptions()
+    ao.ransac.max_error = max_error_px
+    ao.ransac.random_seed = seed
+    ao.ransac.min_num_trials = min_trials
+    ao.ransac.max_num_trials = max_trials
+    return pycam, ao
+
+
 class Tracker:
     """Pose of a frame against ``slam_map``; holds no state besides the map and cameras."""
 
     def __init__(self, slam_map: Map, cam: PinholeCamera, stereo_cam: StereoCamera, cfg: TrackingConfig,
                  backend: BackendConfig):
         self.map, self.cam, self.stereo_cam, self.cfg, self.backend = slam_map, cam, stereo_cam, cfg, backend
-        self.pycam = pycolmap.Camera(model="PINHOLE", width=cam.width, height=cam.height, params=[cam.fx, cam.fy, cam.cx, cam.cy])
-        self.ao = pycolmap.AbsolutePoseEstimationOptions()
-        self.ao.ransac.max_error = cfg.ransac_px
-        self.ao.ransac.random_seed = cfg.seed
-        self.ao.ransac.min_num_trials = 30
-        self.ao.ransac.max_num_trials = 1000
+        self.pycam, self.ao = pnp_setup(cam, cfg.ransac_px, cfg.seed, 30, 1000)
 
     # -- building blocks ------------------------------------------------------
     def pnp(self, uv: np.ndarray, X: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
