@@ -50,9 +50,11 @@ def test_vio_beats_vision_only(blackout_runs):
     before = np.arange(BLACK[0])
     ate_v = _ate(traj_v.subset(before), seq).ate.translation.rmse
     ate_i = _ate(traj_i.subset(before), seq).ate.translation.rmse
-    # measured: vision-only 0.0168 m, VIO 0.0117 m (vision-only with VIO's 0.5 s keyframe rule: 0.0154 m)
-    assert ate_i < 0.8 * ate_v
-    assert ate_i < 0.0135
+    # measured: vision-only 0.0056 m, VIO 0.0050 m. Before RGB-D depth got its own disparity sigma in the
+    # back end (BackendConfig.rgbd_disparity_sigma) vision-only was 0.0168 m and VIO 0.0117 m: the IMU then
+    # made up for what BA threw away; the margin is smaller now that the depth is used at its precision.
+    assert ate_i < 0.95 * ate_v
+    assert ate_i < 0.0065
 
 
 def test_blackout_is_bridged_by_the_imu(blackout_runs):

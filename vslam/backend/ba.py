@@ -81,6 +81,13 @@ class BackendConfig:
     # and EuRoC unchanged, mapping time per frame ~15 % lower.
     max_iterations: int = 6
     rgbd_virtual_baseline: float = 0.08  # metres; RGB-D depth as a virtual stereo pair (ORB-SLAM2 uses bf/fx ~ 0.08)
+    # RGB-D: std (px) of the virtual disparity fx*b/z, independent of the keypoint's own pixel noise.
+    # ORB-SLAM2 gives uR the keypoint's sigma (1 px) as if it were a second keypoint: with b = 0.08 that is a
+    # depth std of ~5 % at 2 m, far above a depth sensor (Kinect: sigma_z ~ 1.4e-3 z^2, i.e. a constant
+    # ~0.06 px of this disparity), and local BA then trades depth for the rotation/translation ambiguity:
+    # on the synthetic loop room every keyframe BA *added* rotation error (+0.1..1.4 deg per BA, the same
+    # minimum when started from the true poses). 0 = the ORB-SLAM2 model. Swept in ``vslam bench`` rows.
+    rgbd_disparity_sigma: float = 0.1
     refine_iterations: int = 3  # LM iterations of local BA's second round, outliers removed (ORB-SLAM2: 10)
     pose_rounds: int = 4  # pose-only: optimise / classify rounds (ORB-SLAM2: 4)
     pose_iterations: int = 10  # pose-only: LM iterations per round (ORB-SLAM2: 10)
@@ -88,13 +95,19 @@ class BackendConfig:
 
 @dataclass(frozen=True)
 class StereoCamera:
-    """Pinhole of the (rectified) left camera; baseline in metres for stereo-like measurements (0 = mono only)."""
+    """Pinhole of the (rectified) left camera; baseline in metres for stereo-like measurements (0 = mono only).
+
+    disparity_sigma (px): 0 -> uR is an independent measurement with the keypoint's pixel sigma (a matched
+    right keypoint: stereo); > 0 -> uR = uL - d with the disparity d of this std independent of uL (a depth
+    sensor: RGB-D). The whitened stereo residual is then (e_uL / s, e_v / s, (e_uL - e_uR) / disparity_sigma).
+    """
 
     fx: float
     fy: float
     cx: float
     cy: float
     baseline: float = 0.0
+    disparity_sigma: float = 0.0
 
 
 @dataclass

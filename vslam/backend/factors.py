@@ -38,14 +38,22 @@ class FactorBuilder:
         b = max(camera.baseline, 1e-12)  # unused when baseline == 0 (every factor is then mono)
         self.K_stereo = gtsam.Cal3_S2Stereo(camera.fx, camera.fy, 0.0, camera.cx, camera.cy, b)
         self._huber = gtsam.noiseModel.mEstimator.Huber.Create(huber_k)
+        self._disparity_sigma = float(camera.disparity_sigma)
         self._models: dict[tuple[int, float], gtsam.noiseModel.Base] = {}
 
     def noise(self, dim: int, sigma: float) -> gtsam.noiseModel.Base:
-        """Huber-robust isotropic model of ``dim`` (2 mono, 3 stereo) and ``sigma`` pixels, built once."""
+        """Huber-robust model of ``dim`` (2 mono, 3 stereo) and ``sigma`` pixels, built once: isotropic, or for
+        stereo with a disparity sigma (RGB-D, see ``StereoCamera``) the covariance of (uL, uR = uL - d, v)."""
         key = (dim, float(sigma))
         model = self._models.get(key)
         if model is None:
-            model = gtsam.noiseModel.Robust.Create(self._huber, gtsam.noiseModel.Isotropic.Sigma(dim, float(sigma)))
+            s2 = float(sigma) ** 2
+            if dim == 3 and self._disparity_sigma > 0:
+                cov = np.array([[s2, s2, 0.0], [s2, s2 + self._disparity_sigma**2, 0.0], [0.0, 0.0, s2]])
+                base = gtsam.noiseModel.Gaussian.Covariance(cov)
+            else:
+                base = gtsam.noiseModel.Isotropic.Sigma(dim, float(sigma))
+            model = gtsam.noiseModel.Robust.Create(self._huber, base)
             self._models[key] = model
         return model
 

@@ -171,7 +171,8 @@ def _linearize(R, t, PT, ZT, S, w, camera, huber_k):
     PT: (3,n) world points; ZT: (3,n) measured uL, v, uR; S: (n,) 1.0 stereo / 0.0 mono; w: (n,) 1/sigma.
     Jacobian rows (standard pinhole form, xn = X/Z, yn = Y/Z, xb = (X - b)/Z, iz = 1/Z) w.r.t. (w, v):
     uL: fx [-xn yn, 1 + xn^2, -yn, iz, 0, -xn iz];  v: fy [-(1 + yn^2), xn yn, xn, 0, iz, -yn iz];
-    uR: fx [-xb yn, 1 + xb xn, -yn, iz, 0, -xb iz].
+    uR: fx [-xb yn, 1 + xb xn, -yn, iz, 0, -xb iz]; with ``camera.disparity_sigma`` > 0 the third row is the
+    disparity fx b / Z instead (uL row minus uR row), whitened by 1 / disparity_sigma.
     """
     fx, fy = camera.fx, camera.fy
     pc = R @ PT + t[:, None]
@@ -182,7 +183,11 @@ def _linearize(R, t, PT, ZT, S, w, camera, huber_k):
     xb = xn - camera.baseline * iz
     ru = (fx * xn + camera.cx - ZT[0]) * w
     rv = (fy * yn + camera.cy - ZT[1]) * w
-    rr = (fx * xb + camera.cx - ZT[2]) * (w * S)
+    sd = float(camera.disparity_sigma)
+    if sd > 0:  # third row: disparity error fx b / Z - (uL - uR), whitened by its own sigma (RGB-D)
+        rr = (fx * (xn - xb) - (ZT[0] - ZT[2])) * (S / sd)
+    else:
+        rr = (fx * xb + camera.cx - ZT[2]) * (w * S)
     e2 = ru * ru + rv * rv + rr * rr
     e2 = np.where(front, e2, _BEHIND_PENALTY_PX**2)
     if huber_k is None:
@@ -195,7 +200,7 @@ def _linearize(R, t, PT, ZT, S, w, camera, huber_k):
         cost = float(np.sum(np.where(big, huber_k * (e - 0.5 * huber_k), 0.5 * e2)))
     n = PT.shape[1]
     a, b = fx * w * sw, fy * w * sw
-    c = a * S
+    c = a * S if sd <= 0 else fx * sw * S / sd
     J = np.empty((6, 3, n))
     xy = xn * yn
     # J[column, row]: columns (w, v), rows (uL, v, uR); the formulas are in the docstring
@@ -203,8 +208,13 @@ def _linearize(R, t, PT, ZT, S, w, camera, huber_k):
     J[3, 0], J[4, 0], J[5, 0] = a * iz, 0.0, -a * xn * iz
     J[0, 1], J[1, 1], J[2, 1] = -b * (1.0 + yn * yn), b * xy, b * xn
     J[3, 1], J[4, 1], J[5, 1] = 0.0, b * iz, -b * yn * iz
-    J[0, 2], J[1, 2], J[2, 2] = -c * xb * yn, c * (1.0 + xb * xn), -c * yn
-    J[3, 2], J[4, 2], J[5, 2] = c * iz, 0.0, -c * xb * iz
+    if sd > 0:  # d(fx b / Z) = uL row - uR row: fx b iz [-yn, xn, 0, 0, 0, -iz]
+        cb = c * camera.baseline * iz
+        J[0, 2], J[1, 2], J[2, 2] = -cb * yn, cb * xn, 0.0
+        J[3, 2], J[4, 2], J[5, 2] = 0.0, 0.0, -cb * iz
+    else:
+        J[0, 2], J[1, 2], J[2, 2] = -c * xb * yn, c * (1.0 + xb * xn), -c * yn
+        J[3, 2], J[4, 2], J[5, 2] = c * iz, 0.0, -c * xb * iz
     J = J.reshape(6, 3 * n)
     r = np.concatenate([ru * sw, rv * sw, rr * sw])
     return cost, J @ J.T, J @ r

@@ -5,7 +5,9 @@ implements (checked in ``tests/backend/test_ba.py``): with ``p = T_cam_world @ p
 
     uL = fx * X / Z + cx,   v = fy * Y / Z + cy,   uR = fx * (X - b) / Z + cx = uL - fx * b / Z
 
-A mono measurement is (uL, v) only; its ``ur`` is NaN. Nothing here imports GTSAM.
+A mono measurement is (uL, v) only; its ``ur`` is NaN. With ``camera.disparity_sigma > 0`` (RGB-D) the third
+whitened residual is the disparity error (e_uL - e_uR) / disparity_sigma instead of e_uR / sigma, the same
+model as the correlated (uL, uR, v) covariance of ``factors.FactorBuilder``. Nothing here imports GTSAM.
 """
 
 from __future__ import annotations
@@ -69,7 +71,11 @@ def whitened_sq_errors(
     pred = project_cam(pts_cam, camera.fx, camera.fy, camera.cx, camera.cy, camera.baseline)
     r = pred - meas
     r[:, 2] = np.where(stereo, r[:, 2], 0.0)
-    chi2 = np.einsum("ij,ij->i", r, r) / np.square(sigma)
+    sd = float(camera.disparity_sigma)
+    if sd > 0:
+        chi2 = (r[:, 0] ** 2 + r[:, 1] ** 2) / np.square(sigma) + np.where(stereo, (r[:, 0] - r[:, 2]) / sd, 0.0) ** 2
+    else:
+        chi2 = np.einsum("ij,ij->i", r, r) / np.square(sigma)
     bad = ~(pts_cam[:, 2] > MIN_DEPTH) | ~np.isfinite(chi2)
     chi2[bad] = np.inf
     return chi2, r

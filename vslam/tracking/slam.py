@@ -70,7 +70,8 @@ class SlamTracker:
         else:
             baseline = 0.0
         self.baseline = baseline
-        self.stereo_cam = StereoCamera(self.cam.fx, self.cam.fy, self.cam.cx, self.cam.cy, baseline)
+        disparity_sigma = cfg.backend.rgbd_disparity_sigma if sensor == "rgbd" else 0.0  # a depth sensor's own noise
+        self.stereo_cam = StereoCamera(self.cam.fx, self.cam.fy, self.cam.cx, self.cam.cy, baseline, disparity_sigma)
         self.extractor = make_extractor(cfg.features)
         self.map = Map()
         self.tracker = Tracker(self.map, self.cam, self.stereo_cam, cfg.tracking, cfg.backend)
