@@ -10,7 +10,7 @@ from tests.backend import _synth as S
 from vslam.backend import pose_only
 from vslam.backend.ba import BackendConfig, BAProblem, StereoCamera, local_bundle_adjustment, optimize_pose
 from vslam.backend.factors import FactorBuilder, L, X, pose3
-from vslam.backend.projection import measurement_matrix, project_stereo
+from vslam.backend.projection import measurement_matrix, project_stereo, whitened_sq_errors
 from vslam.geometry.se3 import inv_T, make_T, so3_exp
 
 
@@ -56,13 +56,40 @@ def test_gtsam_factors_take_T_world_cam_and_match_numpy_residuals():
     np.testing.assert_allclose(f_mo.unwhitenedError(values), [-1.5, 2.0], atol=1e-9)
 
 
-def test_pose_only_gradient_matches_numeric():
+def test_disparity_sigma_model_matches_gtsam_and_weights_depth():
+    """RGB-D model (StereoCamera.disparity_sigma): numpy chi2 = GTSAM's whitened error of the correlated
+    (uL, uR, v) covariance, and a pure depth error costs (sigma / disparity_sigma)^2 more than under the
+    ORB-SLAM2 model, a shift of the keypoint (uL and uR together) the same."""
+    rgbd = StereoCamera(S.CAM.fx, S.CAM.fy, S.CAM.cx, S.CAM.cy, S.CAM.baseline, disparity_sigma=0.1)
+    rng = np.random.default_rng(5)
+    T = S.camera_path(rng, 2)[1]
+    p = np.array([[0.3, -0.2, 3.0]]) @ T[:3, :3].T + T[:3, 3]
+    uv, ur, _ = project_stereo(T, p, rgbd)
+    pc = (inv_T(T)[:3, :3] @ p[0] + inv_T(T)[:3, 3])[None]
+    values = gtsam.Values()
+    values.insert(X(0), pose3(T))
+    values.insert(L(0), p[0])
+    for du, dr in [(0.0, 0.3), (0.5, 0.5), (1.2, -0.4)]:
+        meas, st = measurement_matrix(uv + [[du, 0.0]], ur + dr)
+        (f,) = FactorBuilder(rgbd, 1e9).factors(np.array([0]), np.array([0]), meas, st, np.ones(1))
+        chi2, _ = whitened_sq_errors(pc, meas, st, 1.0, rgbd)
+        np.testing.assert_allclose(chi2[0], 2.0 * f.error(values), rtol=1e-9)  # Huber k = 1e9: plain LS
+        old, _ = whitened_sq_errors(pc, meas, st, 1.0, S.CAM)
+        if du == dr:  # the keypoint moved, the depth did not: only the uL term
+            np.testing.assert_allclose(chi2[0], du**2, rtol=1e-9)
+        if du == 0.0:  # a depth error alone
+            np.testing.assert_allclose(chi2[0], old[0] * 100.0, rtol=1e-9)
+
+
+@pytest.mark.parametrize("disparity_sigma", [0.0, 0.1])
+def test_pose_only_gradient_matches_numeric(disparity_sigma):
     rng = np.random.default_rng(2)
     T_cw = inv_T(S.camera_path(rng, 1)[0])
     P = np.column_stack([rng.uniform(-2, 2, 30), rng.uniform(-1, 1, 30), rng.uniform(2, 8, 30)])
     Z = np.column_stack([rng.uniform(0, 640, 30), rng.uniform(0, 480, 30), rng.uniform(0, 640, 30)])
     Sf, w = (rng.random(30) < 0.5).astype(float), rng.uniform(0.5, 2.0, 30)
-    args = (np.ascontiguousarray(P.T), np.ascontiguousarray(Z.T), Sf, w, S.CAM, None)
+    cam = StereoCamera(S.CAM.fx, S.CAM.fy, S.CAM.cx, S.CAM.cy, S.CAM.baseline, disparity_sigma)
+    args = (np.ascontiguousarray(P.T), np.ascontiguousarray(Z.T), Sf, w, cam, None)
     _, H, g = pose_only._linearize(T_cw[:3, :3], T_cw[:3, 3], *args)
     num = np.zeros(6)
     for i in range(6):
