@@ -4,7 +4,8 @@ import numpy as np
 
 from vslam.data.synthetic import SyntheticConfig, SyntheticSequence
 from vslam.features import EXTRACTORS, FeatureConfig, make_extractor
-from vslam.features.matching import hamming_rows, match_by_projection, match_mutual
+from vslam.features.matching import hamming_rows, match_by_projection, match_epipolar, match_mutual
+from vslam.geometry.se3 import inv_T, make_T, skew, so3_exp
 from vslam.features.orb import bucket
 
 
@@ -74,3 +75,40 @@ def test_orb_extractor_on_synthetic_image():
     assert np.bincount(q, minlength=4).min() > 30
     empty = make_extractor(FeatureConfig()).detect(np.zeros((240, 320), np.uint8), seq.calibration.cam0)
     assert len(empty) == 0
+
+
+def _flip_bits(desc, n, rng):
+    """Copy of (N,32) uint8 descriptors with n distinct bits flipped per row."""
+    out = desc.copy()
+    for row in out:
+        for bit in rng.choice(256, n, replace=False):
+            row[bit // 8] ^= np.uint8(1 << (bit % 8))
+    return out
+
+
+def test_epipolar_matching_finds_what_the_ratio_test_loses():
+    """Two views of 300 points; every keypoint of view a has a twin in view b one bit further away than its
+    true match (repetitive texture), which defeats a global ratio test; twins lie off the epipolar line.
+    Points near the epipole (forward motion: no parallax) are skipped."""
+    rng = np.random.default_rng(3)
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    T_w_b = make_T(so3_exp(np.array([0.0, 0.03, 0.0])), np.array([0.3, 0.0, 0.5]))
+    X = np.column_stack([rng.uniform(-3, 3, 300), rng.uniform(-2, 2, 300), rng.uniform(4, 10, 300)])
+    Xb = X @ inv_T(T_w_b)[:3, :3].T + inv_T(T_w_b)[:3, 3]
+    uv_a = X[:, :2] / X[:, 2:] * 500.0 + [320, 240]
+    uv_true = Xb[:, :2] / Xb[:, 2:] * 500.0 + [320, 240] + rng.normal(0, 0.3, (300, 2))
+    desc_a = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+    order = rng.permutation(600)  # b = true matches and twins, shuffled
+    uv_b = np.vstack([uv_true, rng.uniform([0, 0], [640, 480], (300, 2))])[order]
+    desc_b = np.vstack([_flip_bits(desc_a, 8, rng), _flip_bits(desc_a, 9, rng)])[order]
+    truth = np.argsort(order)[:300]  # b index of a's true match
+    assert len(match_mutual(desc_a, desc_b, ratio=0.75)) < 30  # the global ratio test keeps almost nothing
+    T_b_a = inv_T(T_w_b)
+    F = np.linalg.inv(K).T @ skew(T_b_a[:3, 3]) @ T_b_a[:3, :3] @ np.linalg.inv(K)
+    epipole = (K @ T_b_a[:3, 3])[:2] / T_b_a[2, 3]
+    m = match_epipolar(uv_a, desc_a, uv_b, desc_b, F, 2.0, epipole, 30.0, max_dist=50, ratio=0.7)
+    correct = truth[m[:, 0]] == m[:, 1]
+    near = np.linalg.norm(uv_true - epipole, axis=1) < 30.0
+    assert correct.mean() > 0.97 and correct.sum() > 0.8 * (~near).sum()
+    assert not near[m[:, 0]].any()
+    assert len(np.unique(m[:, 1])) == len(m)

@@ -94,6 +94,10 @@ def test_keyframe_decision():
     assert need_keyframe(300, 320, cfg.kf_max_frames, 200, 10, "rgbd", cfg)
     # too few inliers to make a useful keyframe
     assert not need_keyframe(10, 320, 5, 5, 200, "rgbd", cfg)
+    # monocular: kf_min_frames_mono holds a weak frame back, unless its inliers run out
+    assert not need_keyframe(200, 320, 1, 0, 0, "mono", cfg)
+    assert need_keyframe(200, 320, cfg.kf_min_frames_mono, 0, 0, "mono", cfg)
+    assert need_keyframe(cfg.kf_min_inliers_mono - 1, 320, 1, 0, 0, "mono", cfg)
 
 
 def test_local_ba_window_is_held_by_enough_fixed_points():
