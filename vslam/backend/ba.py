@@ -88,6 +88,9 @@ class BackendConfig:
     # on the synthetic loop room every keyframe BA *added* rotation error (+0.1..1.4 deg per BA, the same
     # minimum when started from the true poses). 0 = the ORB-SLAM2 model. Swept in ``vslam bench`` rows.
     rgbd_disparity_sigma: float = 0.1
+    # Rectified stereo with sub-pixel refinement (``vslam.features.stereo``): the disparity is measured against
+    # the left keypoint to ~0.1 px of its pyramid level; 0 = uR as an independent keypoint (EuRoC, unrectified).
+    stereo_disparity_sigma: float = 0.0
     refine_iterations: int = 3  # LM iterations of local BA's second round, outliers removed (ORB-SLAM2: 10)
     pose_rounds: int = 4  # pose-only: optimise / classify rounds (ORB-SLAM2: 4)
     pose_iterations: int = 10  # pose-only: LM iterations per round (ORB-SLAM2: 10)

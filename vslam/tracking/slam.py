@@ -21,6 +21,7 @@ from vslam.dynamic import DynamicConfig, DynamicFilter
 from vslam.features import FeatureConfig, Features, make_extractor
 from vslam.features.lines import LineConfig
 from vslam.features.depth import depth_rgbd, depth_stereo, stereo_ur
+from vslam.features.stereo import depth_stereo_rectified, is_rectified
 from vslam.geometry.se3 import inv_T
 from vslam.loop.config import LoopConfig
 from vslam.mapping.line_map import LineSlam
@@ -70,7 +71,12 @@ class SlamTracker:
         else:
             baseline = 0.0
         self.baseline = baseline
-        disparity_sigma = cfg.backend.rgbd_disparity_sigma if sensor == "rgbd" else 0.0  # a depth sensor's own noise
+        # the disparity's own noise where it is measured apart from the keypoint: a depth sensor, or the
+        # sub-pixel stereo refinement of a rectified rig (``vslam.features.stereo``)
+        self.rectified = sensor == "stereo" and cfg.tracking.stereo_refine and is_rectified(calibration)
+        disparity_sigma = {"rgbd": cfg.backend.rgbd_disparity_sigma}.get(sensor, 0.0)
+        if self.rectified:
+            disparity_sigma = cfg.backend.stereo_disparity_sigma
         self.stereo_cam = StereoCamera(self.cam.fx, self.cam.fy, self.cam.cx, self.cam.cy, baseline, disparity_sigma)
         self.extractor = make_extractor(cfg.features)
         self.map = Map()
@@ -105,6 +111,9 @@ class SlamTracker:
             return depth_rgbd(frame.depth, feats, tc.min_depth, tc.max_depth)
         if self.sensor == "stereo" and frame.right is not None and len(feats):
             right = self.extractor.detect(frame.right, self.calib.cam1)  # type: ignore[arg-type]
+            if self.rectified:
+                return depth_stereo_rectified(frame.image, frame.right, feats, right, self.calib, tc.min_depth,
+                                              tc.max_depth, n_levels=self.cfg.features.n_levels)
             return depth_stereo(feats, right, self.calib, tc.min_depth, tc.max_depth, tc.stereo_max_px)
         return np.full(len(feats), np.nan)
 
