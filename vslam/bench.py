@@ -2,7 +2,9 @@
 
 Each run happens in a fresh spawned process so its peak memory is its own
 and one row cannot warm caches for the next. Timings are only compared as
-ratios inside one BENCHMARKS.md (same machine, same run).
+ratios inside one BENCHMARKS.md (same machine, same run). ``--jobs N`` / ``--ray``
+run the jobs in parallel (``vslam.batch``): the same metrics, timings no longer clean.
+``--sweep KEY=V1,V2`` runs every selected row once per value (a parameter sweep).
 
 The measured numbers live in a machine-readable sidecar next to the Markdown
 (``BENCHMARKS.json`` beside ``BENCHMARKS.md``): ``--only NAME`` re-measures
@@ -14,6 +16,7 @@ break with every change of its layout; the JSON does not.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import datetime as _dt
 import json
 import logging
@@ -41,12 +44,16 @@ PER_FRAME = ("features", "depth", "pose", "total")  # run on every frame: median
 @dataclass(frozen=True)
 class BenchRow:
     name: str
-    kind: Literal["run", "synthetic_render", "fusion", "imu_preint"] = "run"
+    kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch"] = "run"
     config: str = ""  # pipeline YAML, relative to the suite file's folder's parent (the repo root) or absolute
     set: tuple[str, ...] = ()  # KEY=VALUE overrides
     note: str = ""
     target: str = ""  # the number the issue asks for, shown beside ours
     experiment: str = ""  # kind "fusion": a key of vslam.fusion.experiments.EXPERIMENTS
+    # kind "batch" (issue 10): the jobs are the grid's cartesian product of KEY: [values] on top of ``set``,
+    # run serially, over a process pool and on a local Ray instance of ``workers`` each; wall times compared
+    grid: dict[str, Any] = field(default_factory=dict)
+    workers: int = 2
 
 
 @dataclass(frozen=True)
@@ -164,17 +171,20 @@ def _job_imu_preint(overrides: dict[str, Any]) -> dict[str, Any]:
     return {**out, "seconds": time.perf_counter() - t0, "peak_rss_mb": _peak_rss_mb()}
 
 
+def execute_job(kind: str, config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
+    """One job in this process -> its result row (``vslam.batch`` calls this in its worker processes)."""
+    if kind == "fusion":
+        return _job_fusion(str(config), overrides, out_dir)
+    if kind == "imu_preint":
+        return _job_imu_preint(overrides)
+    fn = _job_run if kind == "run" else _job_render
+    return fn(config, overrides, out_dir)
+
+
 def _worker(kind: str, config: str | None, overrides: dict[str, Any], out_dir: str, q: Any) -> None:
     try:
         os.environ.setdefault("OMP_NUM_THREADS", str(os.cpu_count() or 1))
-        if kind == "fusion":
-            q.put(("ok", _job_fusion(str(config), overrides, out_dir)))
-            return
-        if kind == "imu_preint":
-            q.put(("ok", _job_imu_preint(overrides)))
-            return
-        fn = _job_run if kind == "run" else _job_render
-        q.put(("ok", fn(config, overrides, out_dir)))
+        q.put(("ok", execute_job(kind, config, overrides, out_dir)))
     except BaseException as e:  # report to the parent instead of dying silently
         q.put(("error", f"{type(e).__name__}: {e}"))
 
@@ -273,9 +283,15 @@ def _json_safe(v: Any) -> Any:
 
 
 def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[str] | None = None,
-              jobs_dir: Path = Path("runs/bench")) -> Path:
+              jobs_dir: Path = Path("runs/bench"), workers: int = 1, ray: str | None = None,
+              sweep: dict[str, list[Any]] | None = None) -> Path:
     """Run the suite's rows (or those named in ``only``), merge with the rows kept in the sidecar
-    ``output.with_suffix('.json')`` and rewrite ``output`` with every row of the suite measured so far."""
+    ``output.with_suffix('.json')`` and rewrite ``output`` with every row of the suite measured so far.
+
+    workers > 1 / ray: the jobs of all rows go out together (``vslam.batch.run_jobs``). sweep {KEY: [values]}:
+    each selected row once per value, as rows ``NAME[KEY=V]`` of a suite of their own (nothing kept)."""
+    from vslam.batch import Job, batch_row, run_jobs
+
     suite = load_suite(suite_path)
     root = Path(suite_path).resolve().parent.parent
     names = {r.name for r in suite.rows}
@@ -283,46 +299,75 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
     if unknown:
         raise ConfigError(f"{suite_path}: no row named {', '.join(unknown)}; rows: {', '.join(sorted(names))}")
     rows = [r for r in suite.rows if not only or r.name in only]
+    if sweep:
+        rows = _sweep_rows(rows, sweep)
+        suite = BenchSuite(f"{suite.title}: sweep of {', '.join(sweep)}", tuple(rows))
+        names = {r.name for r in rows}
     side = sidecar_path(output)
-    kept = load_sidecar(side)
+    kept = {} if sweep else load_sidecar(side)
     now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     machine = machine_info()
+    plan: list[tuple[BenchRow, list[Job]]] = []
     for row in rows:
-        if row.kind == "fusion":  # one seeded, deterministic run: repeating it only costs time
-            result = _aggregate([run_job("fusion", row.experiment, parse_overrides(list(row.set)), str(jobs_dir / row.name))])
-            n = 1
+        cfg = str(Path(row.config) if Path(row.config).is_absolute() else root / row.config) if row.config else None
+        over = parse_overrides(list(row.set))
+        if row.kind == "batch":  # runs its own serial / pool / Ray passes
+            result = batch_row(cfg, over, row.grid, row.workers, str(jobs_dir / row.name))
+            kept[row.name] = {"result": _json_safe(result), "measured": now, "repeat": 1, "machine": machine}
+        elif row.kind == "fusion":  # one seeded, deterministic run: repeating it only costs time
+            plan.append((row, [Job("fusion", row.experiment, over, str(jobs_dir / row.name))]))
         else:
-            cfg = None
-            if row.config:
-                cfg = str(Path(row.config) if Path(row.config).is_absolute() else root / row.config)
-            over = parse_overrides(list(row.set))
-            n = max(1, repeat)
-            result = _aggregate([run_job(row.kind, cfg, over, str(jobs_dir / f"{row.name}-{i}")) for i in range(n)])
-        kept[row.name] = {"result": _json_safe(result), "measured": now, "repeat": n, "machine": machine}
+            plan.append((row, [Job(row.kind, cfg, over, str(jobs_dir / f"{row.name}-{i}")) for i in range(max(1, repeat))]))
+    results = iter(run_jobs([j for _, jobs in plan for j in jobs], workers, ray))
+    parallel = {"parallel": workers if ray is None else f"ray:{workers}"} if workers > 1 or ray is not None else {}
+    for row, jobs in plan:
+        kept[row.name] = {"result": _json_safe(_aggregate([next(results) for _ in jobs])), "measured": now,
+                          "repeat": len(jobs), "machine": machine, **parallel}
     dropped = sorted(set(kept) - names)
     if dropped:
         log.info("%s: rows no longer in the suite dropped: %s", side, ", ".join(dropped))
     entries = [(r, kept[r.name]) for r in suite.rows if r.name in kept]
+    side.parent.mkdir(parents=True, exist_ok=True)
     side.write_text(json.dumps({"version": SIDECAR_VERSION, "suite": str(suite_path),
                                 "rows": {r.name: e for r, e in entries}}, indent=1, default=float) + "\n")
     output.write_text(render_markdown(suite, entries, now, machine))
     return output
 
 
+def _sweep_rows(rows: list[BenchRow], sweep: dict[str, list[Any]]) -> list[BenchRow]:
+    """Each row once per point of the sweep grid, named ``NAME[KEY=V,...]``."""
+    import itertools
+
+    keys = list(sweep)
+    out = []
+    for row in rows:
+        if row.kind not in ("run", "synthetic_render"):
+            continue
+        for vals in itertools.product(*(sweep[k] for k in keys)):
+            sets = tuple(f"{k}={v}" for k, v in zip(keys, vals))
+            out.append(dataclasses.replace(row, name=f"{row.name}[{','.join(sets)}]", set=row.set + sets))
+    if not out:
+        raise ConfigError("--sweep: none of the selected rows is a pipeline run")
+    return out
+
+
 def _measured_lines(entries: list[tuple[BenchRow, dict[str, Any]]], machine: str) -> list[str]:
     """One line per (date, repeat, machine) group: which rows were measured when."""
-    groups: dict[tuple[str, int, str], list[str]] = {}
+    groups: dict[tuple[str, int, str, str], list[str]] = {}
     for row, e in entries:
-        groups.setdefault((e["measured"], int(e["repeat"]), e.get("machine", "")), []).append(row.name)
+        groups.setdefault((e["measured"], int(e["repeat"]), e.get("machine", ""), str(e.get("parallel", ""))), []).append(row.name)
     lines = []
-    for (when, rep, mach), names in sorted(groups.items(), reverse=True):
+    for (when, rep, mach, par), names in sorted(groups.items(), reverse=True):
         other = f" on {mach}" if mach and mach != machine else ""
-        lines.append(f"- {when}, {rep} run(s) per row{other}: {', '.join(names)}")
+        par = f", {par} jobs at a time (timings share the cores)" if par else ""
+        lines.append(f"- {when}, {rep} run(s) per row{other}{par}: {', '.join(names)}")
     return lines
 
 
 def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, Any]]], now: str, machine: str) -> str:
     """The whole BENCHMARKS.md from sidecar entries ({"result", "measured", "repeat", "machine"})."""
+    from vslam.batch import batch_table
+
     lines = [
         f"# {suite.title}",
         "",
@@ -338,7 +383,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     ]
     for row, e in entries:
         r, repeat = e["result"], int(e["repeat"])
-        if row.kind in ("fusion", "imu_preint"):  # own tables below
+        if row.kind in ("fusion", "imu_preint", "batch"):  # own tables below
             continue
         if "error" in r:
             lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | | | | {row.target} |")
@@ -366,10 +411,11 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
             else:
                 lines.append(f"| {row.name} | {r['headline']} | {r['seed_claim']} | {r['seconds']:.0f} | `{r['report']}` |")
     lines += _imu_table([(row, e["result"]) for row, e in entries if row.kind == "imu_preint"])
+    lines += batch_table([(row, e["result"]) for row, e in entries if row.kind == "batch"])
     notes = [f"- **{row.name}**: {row.note}" for row, _ in entries if row.note]
     if notes:
         lines += ["", "## Notes", "", *notes]
-    repeats = {int(e["repeat"]) for row, e in entries if row.kind != "fusion"}
+    repeats = {int(e["repeat"]) for row, e in entries if row.kind not in ("fusion", "batch")}
     rep = max(repeats) if repeats else 1
     lines += ["", "Reproduce: `vslam bench --suite configs/bench.yaml" + (f" --repeat {rep}" if rep > 1 else "") +
               "` (one row: `--only NAME`; the other rows are kept from BENCHMARKS.json).", ""]

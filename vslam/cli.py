@@ -72,6 +72,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     finally:
         close()
     _summary(result, Path(cfg.output.dir))
+    if args.profile:  # issue 10: per-stage ms and peak memory, also written as profile.json
+        from vslam.profiling import format_profile, write_profile
+
+        print(format_profile(write_profile(result.paths["stats"], Path(cfg.output.dir) / "profile.json")))
     return 0
 
 
@@ -131,7 +135,12 @@ def cmd_synth(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from vslam.bench import run_bench
 
-    out = run_bench(args.suite, Path(args.output), repeat=args.repeat, only=args.only, jobs_dir=Path(args.runs))
+    from vslam.batch import parse_sweep
+
+    sweep = parse_sweep(args.sweep) if args.sweep else None
+    output = Path(args.output or ("runs/bench/sweep.md" if sweep else "BENCHMARKS.md"))
+    out = run_bench(args.suite, output, repeat=args.repeat, only=args.only, jobs_dir=Path(args.runs),
+                    workers=args.jobs, ray=args.ray, sweep=sweep)
     print(f"wrote {out}")
     return 0
 
@@ -150,6 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--max-frames", type=int)
     r.add_argument("--out", "-o", help="output folder (default from config: runs/latest)")
     r.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field, e.g. odometry.n_features=2000")
+    r.add_argument("--profile", action="store_true", help="print ms per stage and peak memory (also profile.json)")
     r.set_defaults(fn=cmd_run)
 
     d = sub.add_parser("demo", help="run the built-in synthetic sequence end to end")
@@ -179,10 +189,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="run the benchmark suite and rewrite BENCHMARKS.md")
     b.add_argument("--suite", default="configs/bench.yaml")
-    b.add_argument("--output", default="BENCHMARKS.md")
+    b.add_argument("--output", default=None, help="default BENCHMARKS.md (with --sweep: runs/bench/sweep.md)")
     b.add_argument("--runs", default="runs/bench", help="where each job's outputs go")
     b.add_argument("--repeat", type=int, default=1, help="runs per row (median and spread reported)")
     b.add_argument("--only", action="append", help="run only rows with this name (repeatable)")
+    b.add_argument("--jobs", type=int, default=1, help="jobs at a time over a local process pool (timings then share the cores)")
+    b.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
+                   help="run the jobs as Ray tasks: on the cluster at ADDRESS, or a local Ray instance of --jobs CPUs")
+    b.add_argument("--sweep", action="append", metavar="KEY=V1,V2", help="run each selected row once per value (repeatable: a grid)")
     b.set_defaults(fn=cmd_bench)
     from vslam.fusion.experiments import add_cli as add_fusion_cli
 

@@ -7,13 +7,21 @@ batches ("precise BN", Wu & Johnson, "Rethinking Batch in BatchNorm", 2021: shor
 averages stale), then AP50 / AP50-95 per class is measured on held-out sets: COCO128 val2017 and synthetic
 rooms of seeds never used for training. Outputs in ``out``: last.pt, model.pt (weights + config + names +
 metrics), metrics.json, log.csv.
+
+Several GPUs (or CPU processes): ``torchrun --nproc_per_node=N -m vslam.cli train detector ...``. Each rank
+draws its own batch (``default_rng([seed, it, rank])``: the global batch is N x ``batch``), gradients are
+averaged by DistributedDataParallel (NCCL on CUDA, gloo on CPU), and rank 0 alone writes logs, checkpoints
+and the final model. Without torchrun (WORLD_SIZE unset) nothing changes: single-GPU and CPU runs give the
+weights they gave before.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
+import os
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -96,8 +104,8 @@ def build_data(cfg: TrainConfig) -> tuple[list[Sample], dict[str, list[Sample]]]
     return train, val
 
 
-def _batch(data: list[Sample], cfg: TrainConfig, it: int, dev: torch.device) -> tuple[torch.Tensor, ...]:
-    rng = np.random.default_rng([cfg.seed, it])
+def _batch(data: list[Sample], cfg: TrainConfig, it: int, dev: torch.device, rank: int | None = None) -> tuple[torch.Tensor, ...]:
+    rng = np.random.default_rng([cfg.seed, it] if rank is None else [cfg.seed, it, rank])
     samples = [place(data[i], cfg.img_size, rng) for i in rng.integers(0, len(data), cfg.batch)]
     return tuple(torch.from_numpy(a).to(dev) for a in collate(samples))
 
@@ -132,16 +140,53 @@ def evaluate(model: YoloDetector, data: list[Sample], cfg: TrainConfig, dev: tor
     return rep
 
 
+def world() -> tuple[int, int, int]:
+    """(rank, world size, local rank) from torchrun's RANK / WORLD_SIZE / LOCAL_RANK; (0, 1, 0) without it."""
+    env = os.environ
+    return int(env.get("RANK", 0)), int(env.get("WORLD_SIZE", 1)), int(env.get("LOCAL_RANK", 0))
+
+
 def train(cfg: TrainConfig) -> dict[str, dict[str, float]]:
-    """Run (or resume) training; returns the held-out metrics per set."""
+    """Run (or resume) training; returns the held-out metrics per set ({} on ranks other than 0)."""
     cfg = resolve(cfg)
     dev = torch.device("cuda" if cfg.device == "cuda" or (cfg.device == "auto" and torch.cuda.is_available()) else "cpu")
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
+    rank, n_ranks, local = world()
+    if n_ranks > 1:
+        import torch.distributed as dist
+
+        if dev.type == "cuda":
+            dev = torch.device("cuda", local)
+            torch.cuda.set_device(dev)
+        dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
+    try:
+        return _train(cfg, dev, rank, n_ranks)
+    finally:
+        if n_ranks > 1:
+            torch.distributed.destroy_process_group()
+
+
+def _check_in_sync(model: torch.nn.Module) -> None:
+    """Every rank must end with the same weights (DDP broadcasts them once and averages every gradient):
+    a checksum gathered from all ranks, RuntimeError if one differs."""
+    import torch.distributed as dist
+
+    v = torch.stack([p.detach().double().sum() for p in model.parameters()]).sum().reshape(1)
+    every = [torch.zeros_like(v) for _ in range(dist.get_world_size())]
+    dist.all_gather(every, v)
+    if any(not torch.equal(x, every[0]) for x in every):
+        raise RuntimeError(f"DDP ranks ended with different weights (checksums {[float(x) for x in every]})")
+
+
+def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict[str, dict[str, float]]:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)  # weight initialisation
     model = YoloDetector(DetectorConfig(cfg.scale, cfg.attention, len(cfg.classes), width=cfg.width)).to(dev)
+    net = model  # what the forward pass goes through: the DDP wrapper when several ranks train
+    if n_ranks > 1:
+        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[dev.index] if dev.type == "cuda" else None)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     start = 0
     if cfg.resume and (out / "last.pt").is_file():
@@ -155,19 +200,22 @@ def train(cfg: TrainConfig) -> dict[str, dict[str, float]]:
     train_set, val_sets = build_data(cfg)
     log.info("training samples: %d; held-out: %s", len(train_set), {k: len(v) for k, v in val_sets.items()})
     model.train()
-    with open(out / "log.csv", "a") as f:
-        if start == 0:
+    lead = rank == 0  # the one rank that writes
+    with open(out / "log.csv", "a") if lead else contextlib.nullcontext() as f:
+        if start == 0 and lead:
             f.write("iteration,lr,loss,box,cls,dfl,seconds\n")
         t0 = time.perf_counter()
         for it in range(start, cfg.iterations):
-            x, gb, gl, gm = _batch(train_set, cfg, it, dev)
+            x, gb, gl, gm = _batch(train_set, cfg, it, dev, rank if n_ranks > 1 else None)
             for g in opt.param_groups:
                 g["lr"] = _lr(cfg, it)
-            loss, parts = detection_loss(model, model(x), gb, gl, gm)
+            loss, parts = detection_loss(model, net(x), gb, gl, gm)
             opt.zero_grad(set_to_none=True)
-            loss.backward()
+            loss.backward()  # DDP: gradients averaged over the ranks here
             torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
             opt.step()
+            if not lead:
+                continue
             if it % cfg.log_every == 0 or it + 1 == cfg.iterations:
                 f.write(f"{it},{_lr(cfg, it):.6g},{float(loss.detach()):.5f},{parts['box']:.5f},{parts['cls']:.5f},"
                         f"{parts['dfl']:.5f},{time.perf_counter() - t0:.1f}\n")
@@ -176,6 +224,10 @@ def train(cfg: TrainConfig) -> dict[str, dict[str, float]]:
             if (it + 1) % cfg.ckpt_every == 0 or it + 1 == cfg.iterations:
                 save_checkpoint(out / "last.pt", model, list(cfg.classes), optimizer=opt.state_dict(),
                                 iteration=it + 1, train=asdict(cfg))
+    if n_ranks > 1:
+        _check_in_sync(model)
+    if not lead:
+        return {}
     recalibrate_bn(model, [_batch(train_set, cfg, 10_000_000 + k, dev)[0] for k in range(cfg.bn_batches)])
     metrics = {name: evaluate(model, data, cfg, dev) for name, data in val_sets.items()}
     save_checkpoint(out / "model.pt", model, list(cfg.classes), img_size=cfg.img_size, metrics=metrics, train=asdict(cfg))

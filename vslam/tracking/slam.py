@@ -122,8 +122,10 @@ class SlamTracker:
         if self.vio is not None:
             self.vio.add_imu(frame)
         feats = self.extractor.detect(frame.image, self.cam)
+        t_feat = time.perf_counter()
         if self.dynamic is not None:  # issue 5: keypoints on moving objects reach neither tracking nor mapping
             feats = feats.subset(np.flatnonzero(self.dynamic.keep(frame, feats)))
+        t_dyn = time.perf_counter()
         if self.lines is not None:
             self._line_feats, self._line_ids = self.lines.detect(frame.image), None
         t1 = time.perf_counter()
@@ -197,8 +199,12 @@ class SlamTracker:
         est.T_world_cam = self.T_world_cam.copy()
         if self.loop is not None:  # for the final trajectory: frames follow their keyframe when a loop moves it
             self.loop.record_frame(self.ref_kf, self.T_world_cam)
-        est.times_ms = {"features": (t1 - t0) * 1e3, "depth": (t2 - t1) * 1e3, "pose": (t3 - t2) * 1e3,
+        est.times_ms = {"features": (t_feat - t0) * 1e3, "depth": (t2 - t1) * 1e3, "pose": (t3 - t2) * 1e3,
                         "mapping": (t4 - t3) * 1e3, **{f"map_{k}": v for k, v in ms_map.items()}}
+        if self.dynamic is not None:
+            est.times_ms["dynamic"] = (t_dyn - t_feat) * 1e3
+        if self.lines is not None:
+            est.times_ms["lines"] = (t1 - t_dyn) * 1e3
         return est
 
     def _drop_moving(self, res: TrackResult, feats: Features, depth: np.ndarray, ur: np.ndarray) -> tuple[Features, np.ndarray, np.ndarray]:

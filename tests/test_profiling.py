@@ -1,0 +1,27 @@
+"""`vslam run --profile` (issue 10): per-stage ms read back from stats.csv add up to the frame time."""
+
+from __future__ import annotations
+
+import json
+
+from vslam.cli import main
+from vslam.profiling import format_profile, profile
+
+
+def test_profile_of_a_tiny_run(tmp_path, capsys):
+    out = tmp_path / "run"
+    rc = main(["run", "--kind", "synthetic", "--max-frames", "15", "-o", str(out), "--profile",
+               "--set", "dataset.synthetic.width=320", "--set", "dataset.synthetic.height=240",
+               "--set", "dataset.synthetic.fx=262.5", "--set", "dataset.synthetic.fy=262.5",
+               "--set", "output.report=false"])
+    assert rc == 0
+    printed = capsys.readouterr().out
+    assert "mean ms/frame" in printed and "peak RSS" in printed
+    p = json.loads((out / "profile.json").read_text())
+    st = p["stages"]
+    assert p["frames"] == 15 and {"decode", "features", "depth", "pose", "mapping", "map_ba", "total"} <= set(st)
+    assert st["map_ba"]["frames"] < 15 and st["features"]["frames"] == 15  # BA on keyframes only
+    parts = sum(st[k]["mean_ms"] for k in ("features", "depth", "pose", "mapping"))
+    assert 0.9 * st["total"]["mean_ms"] < parts <= st["total"]["mean_ms"] * 1.001  # the stages make up the frame
+    assert abs(st["total"]["share"] - 1.0) < 1e-9
+    assert format_profile(profile(out / "stats.csv")).splitlines()[0].startswith("stage")

@@ -1,0 +1,177 @@
+"""Fan benchmark jobs out (issue 10): one after another in fresh processes (the default: clean timings),
+over a local process pool (``--jobs N``), or as Ray tasks on a cluster or a local Ray instance (``--ray``).
+
+A job is ``(kind, config, overrides, out_dir)`` as ``vslam.bench.execute_job`` takes it. Every job runs in a
+process of its own (pool: one task per child; Ray: ``max_calls=1``), so peak RSS stays per job and no state
+crosses jobs: the metrics equal the serial run's (fixed seeds, no global state), only the timings change, as
+parallel jobs share the cores. Ray on a cluster needs vslam (and the data under ``$VSLAM_DATA``) installed on
+every node; outputs land in ``out_dir`` on the node that ran the job, the metrics come back to the caller.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import itertools
+import logging
+import multiprocessing as mp
+import os
+import sys
+from dataclasses import dataclass, field
+from typing import Any
+
+from vslam.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Job:
+    kind: str
+    config: str | None
+    overrides: dict[str, Any] = field(default_factory=dict)
+    out_dir: str = "runs/bench/job"
+
+
+def _threads_env() -> None:
+    """BLAS/OpenMP threads exactly as in the serial path (``bench._worker``), set before numpy loads: another
+    thread count may sum in another order, and one rounding difference is enough for a different trajectory."""
+    os.environ.setdefault("OMP_NUM_THREADS", str(os.cpu_count() or 1))
+
+
+def _guarded(job: Job) -> dict[str, Any]:
+    """Run one job in this (fresh) process; an exception becomes {"error": ...} like the serial path's."""
+    _threads_env()
+    from vslam.bench import execute_job
+
+    try:
+        return execute_job(job.kind, job.config, job.overrides, job.out_dir)
+    except Exception as e:  # report it with the row instead of losing the whole batch
+        return {"error": f"{type(e).__name__}: {e}"}
+
+
+def run_jobs(jobs: list[Job], workers: int = 1, ray: str | None = None) -> list[dict[str, Any]]:
+    """Results of ``jobs`` in order. workers 1 without ray: serial; ray: "" = a local Ray instance with
+    ``workers`` CPUs, else a cluster address ("auto", "ray://host:10001", ...)."""
+    if ray is not None:
+        return _run_ray(jobs, workers, ray)
+    if workers <= 1:
+        from vslam.bench import run_job
+
+        return [run_job(j.kind, j.config, j.overrides, j.out_dir) for j in jobs]
+    kw: dict[str, Any] = {"max_workers": workers, "mp_context": mp.get_context("spawn")}
+    if sys.version_info >= (3, 11):
+        kw["max_tasks_per_child"] = 1  # a fresh process per job: its own peak RSS, nothing cached
+    with cf.ProcessPoolExecutor(**kw) as pool:
+        return list(pool.map(_guarded, jobs))
+
+
+def _run_ray(jobs: list[Job], workers: int, address: str) -> list[dict[str, Any]]:
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError("--ray needs the ray package: pip install 'ray>=2.9'") from None
+    started = not ray.is_initialized()
+    if started:
+        if address:
+            ray.init(address=address, log_to_driver=False)
+        else:  # a local instance: exactly ``workers`` CPUs, no dashboard
+            ray.init(num_cpus=max(1, workers), include_dashboard=False, log_to_driver=False,
+                     object_store_memory=256 * 2**20)  # results are small; containers have little /dev/shm
+    try:
+        task = ray.remote(num_cpus=1, max_calls=1)(_guarded)
+        return ray.get([task.remote(j) for j in jobs])
+    finally:
+        if started:
+            ray.shutdown()
+
+
+# -- grids: parameter sweeps and the batch-scaling row -------------------------------------------------
+#: what must come out the same whichever way the jobs ran (timings and memory may differ)
+METRICS = ("frames", "tracked", "ate_rmse", "rpe_t", "rpe_r", "path_m")
+
+
+def grid_overrides(grid: dict[str, list[Any]]) -> list[dict[str, Any]]:
+    """{KEY: [values]} -> one nested override dict per point of the cartesian product (keys in order)."""
+    from vslam.config import parse_overrides
+
+    keys = list(grid)
+    for k in keys:
+        if not isinstance(grid[k], (list, tuple)) or not grid[k]:
+            raise ConfigError(f"grid '{k}': expected a non-empty list of values, got {grid[k]!r}")
+    return [parse_overrides([f"{k}={v}" for k, v in zip(keys, vals)]) for vals in itertools.product(*(grid[k] for k in keys))]
+
+
+def parse_sweep(items: list[str]) -> dict[str, list[Any]]:
+    """["KEY=V1,V2", ...] (``vslam bench --sweep``) -> {KEY: [V1, V2]} (values parsed as YAML scalars)."""
+    import yaml
+
+    out: dict[str, list[Any]] = {}
+    for item in items:
+        key, sep, vals = item.partition("=")
+        if not sep or not key or not vals:
+            raise ConfigError(f"--sweep {item!r}: expected KEY=V1,V2,...")
+        out[key.strip()] = [yaml.safe_load(v) for v in vals.split(",")]
+    return out
+
+
+def same_metrics(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> bool:
+    return len(a) == len(b) and all(x.get(k) == y.get(k) for x, y in zip(a, b) for k in METRICS)
+
+
+def batch_row(config: str | None, overrides: dict[str, Any], grid: dict[str, list[Any]], workers: int,
+              out_dir: str) -> dict[str, Any]:
+    """Issue 10's batch check: the grid's jobs serially, over a process pool and on a local Ray instance
+    (``workers`` each): wall seconds and whether every job's metrics equal the serial run's."""
+    import statistics
+    import time
+
+    from vslam.config import deep_merge
+
+    points = grid_overrides(grid)
+    out: dict[str, Any] = {"jobs": len(points), "workers": workers}
+    modes: dict[str, list[dict[str, Any]]] = {}
+    for mode, kw in (("serial", {"workers": 1}), ("pool", {"workers": workers}), ("ray", {"workers": workers, "ray": ""})):
+        jobs = [Job("run", config, deep_merge(overrides, p), f"{out_dir}/{mode}-{i:03d}") for i, p in enumerate(points)]
+        t0 = time.perf_counter()
+        try:
+            modes[mode] = run_jobs(jobs, **kw)
+        except ConfigError as e:  # no ray installed: say so in the row
+            out[f"{mode}_error"] = str(e)
+            continue
+        out[f"{mode}_s"] = time.perf_counter() - t0
+    serial = modes.get("serial", [])
+    out["errors"] = sum("error" in r for rs in modes.values() for r in rs)
+    for mode in ("pool", "ray"):
+        if mode in modes:
+            out[f"{mode}_identical"] = same_metrics(serial, modes[mode])
+            out[f"{mode}_speedup"] = out["serial_s"] / out[f"{mode}_s"]
+    ates = [r["ate_rmse"] for r in serial if r.get("ate_rmse") is not None]
+    out["ate_median"] = statistics.median(ates) if ates else None
+    return out
+
+
+def batch_table(rows: list[tuple[Any, dict[str, Any]]]) -> list[str]:
+    """BENCHMARKS.md section for kind "batch" rows: (BenchRow, result) pairs."""
+    if not rows:
+        return []
+    lines = ["", "## Batch evaluation: serial vs process pool vs Ray (issue 10)", "",
+             "The same jobs (a grid of sequences x seeds) run one after another, over a local process pool and on a "
+             "local Ray instance; 'same metrics' compares every job's frames, tracked frames, ATE, RPE and path length "
+             "with the serial run's.", "",
+             "| row | jobs | workers | serial s | pool s (speed-up) | Ray s (speed-up) | same metrics pool / Ray | median ATE m | target |",
+             "|---|---|---|---|---|---|---|---|---|"]
+
+    def cell(r: dict[str, Any], mode: str) -> str:
+        if f"{mode}_s" not in r:
+            return f"– ({r.get(mode + '_error', 'not run')})"
+        return f"{r[mode + '_s']:.1f} ({r[mode + '_speedup']:.2f}x)"
+
+    for row, r in rows:
+        if "error" in r:
+            lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | {row.target} |")
+            continue
+        same = " / ".join("yes" if r.get(f"{m}_identical") else ("**no**" if f"{m}_identical" in r else "–") for m in ("pool", "ray"))
+        ate = "–" if r.get("ate_median") is None else f"{r['ate_median']:.4f}"
+        lines.append(f"| {row.name} | {r['jobs']} | {r['workers']} | {r.get('serial_s', float('nan')):.1f} | {cell(r, 'pool')} | "
+                     f"{cell(r, 'ray')} | {same} | {ate} | {row.target} |")
+    return lines
