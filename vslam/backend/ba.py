@@ -53,6 +53,13 @@ pose-only as a GTSAM graph (points held by priors), same data and pose          
 
 A GTSAM LM iteration costs ~15 ms for 3000 observations (linearise ~2 ms, eliminate ~10 ms: GTSAM's
 per-clique overhead over 1500 tiny point cliques); the Python-side build is ~5 us per factor.
+
+Why a window and not iSAM2 (``python -m tests.backend.bench_solvers --kf 30``, 2-core EPYC, 2026-12-01: a
+growing stereo map, 250 new points per keyframe seen 4-8 times, 0.7 px noise, tracked starts 5 mm / 0.3 deg
+off): windowed LM over 8 keyframes 5.8 mm / 0.048 deg keyframe RMSE at 320 ms per keyframe (max 490);
+iSAM2 over the whole history 4.5 mm / 0.049 deg at 1070 ms per keyframe and growing with the map (1240 ms
+over the last 5); one batch LM over everything at the end 5.4 mm. iSAM2's 1 mm costs 3.3x the time and is
+unbounded, so local mapping uses the window; loop closing adds the global optimisation (``vslam.loop``).
 """
 
 from __future__ import annotations

@@ -30,5 +30,6 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
     if args.resume:
         over["resume"] = True
     metrics = train(load_config(TrainConfig, args.config, over))
-    print(json.dumps(metrics, indent=2))
+    if metrics:  # under torchrun only rank 0 evaluates
+        print(json.dumps(metrics, indent=2))
     return 0

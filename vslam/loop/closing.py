@@ -179,7 +179,8 @@ class LoopCloser:
             self.mapper.bundle_adjust(kf.id)
 
     def global_bundle_adjust(self) -> None:
-        """BA over every keyframe and point (first keyframe fixed) with the back end's local-BA machinery:
+        """BA over every keyframe and point (first keyframe fixed, and those seeing fewer than
+        ``global_ba_min_obs`` points) with the back end's local-BA machinery:
         the pose graph moves keyframes rigidly with their points; BA then re-fits both to the observations,
         including the ones fused across the loop. Outlier observations are removed as in local BA."""
         m = self.map
@@ -191,12 +192,14 @@ class LoopCloser:
                 okf.append(k), opt.append(pid), ouv.append(f.features.uv[kp]), our.append(f.ur[kp])
         if not okf:
             return
-        problem = BAProblem({k: f.T_world_cam for k, f in m.keyframes.items()}, {min(m.keyframes)},
+        n_obs = np.bincount(np.array(okf), minlength=max(m.keyframes) + 1)
+        fixed = {min(m.keyframes)} | {k for k in m.keyframes if n_obs[k] < self.cfg.global_ba_min_obs}
+        problem = BAProblem({k: f.T_world_cam for k, f in m.keyframes.items()}, fixed,
                             {p: m.points[p].xyz for p in pts.tolist()}, np.array(okf), np.array(opt),
                             np.array(ouv).reshape(-1, 2), np.array(our, dtype=np.float64))
         backend = dataclasses.replace(self.backend, max_iterations=self.cfg.global_ba_iterations)
         res = local_bundle_adjustment(problem, self.verifier.stereo_cam, backend)
-        m.apply_adjustment(res.poses, res.points, res.inliers, okf, opt)
+        m.apply_adjustment(res.poses, res.points, res.inliers, okf, opt, fixed)
         log.debug("global BA: %d keyframes, %d observations, %.0f ms", len(m.keyframes), len(okf), res.ms["total"])
 
     def write_stats(self, path: Path) -> Path:
