@@ -307,3 +307,21 @@ def test_optimize_pose_degenerate_inputs():
     uv[:5] = np.nan
     Te, inl = optimize_pose(Tt, pw, uv, ur, S.CAM)
     assert not inl[:5].any() and inl[5:].all() and S.pose_error(Te, Tt)[0] < 1e-9
+
+
+def test_rgbd_depth_outlier_can_stay_a_mono_observation():
+    """With ``rgbd_depth_outliers_as_mono`` an RGB-D observation whose depth is wrong but whose pixel is right is
+    reported in ``depth_only`` (kept as mono by ``Map.apply_adjustment``); a wrong pixel is not."""
+    rgbd = StereoCamera(S.CAM.fx, S.CAM.fy, S.CAM.cx, S.CAM.cy, S.CAM.baseline, disparity_sigma=0.1)
+    rng = np.random.default_rng(11)
+    _, _, prob = S.full_scene(rng, n_kf=4, n_pts=80, stereo_frac=1.0)
+    prob.fixed = {0, 1}
+    bad_depth, bad_pixel = 5, 9
+    prob.obs_ur[bad_depth] += 3.0  # the disparity is 3 px off, the pixel exact
+    prob.obs_uv[bad_pixel] += 6.0
+    prob.obs_ur[bad_pixel] += 6.0
+    off = local_bundle_adjustment(prob, rgbd)
+    assert off.depth_only is None and not off.inliers[bad_depth] and not off.inliers[bad_pixel]
+    on = local_bundle_adjustment(prob, rgbd, BackendConfig(rgbd_depth_outliers_as_mono=True))
+    assert on.depth_only[bad_depth] and not on.depth_only[bad_pixel]
+    assert not on.depth_only[on.inliers].any() and on.depth_only.sum() <= 2

@@ -23,6 +23,18 @@ def _map_with(n_kf=3, n_kp=40):
     return m
 
 
+def test_apply_adjustment_keeps_depth_only_outliers_as_mono():
+    m = _map_with(2)
+    m.keyframes[1].ur[:] = 100.0
+    a, b = m.add_point(np.zeros(3), 0, 1), m.add_point(np.ones(3), 0, 2)
+    m.add_observation(a.id, 1, 3)
+    m.add_observation(b.id, 1, 4)
+    obs_kf, obs_pt = np.array([1, 1]), np.array([a.id, b.id])
+    m.apply_adjustment({}, {}, np.array([False, False]), obs_kf, obs_pt, depth_only=np.array([True, False]))
+    assert 1 in m.points[a.id].observations and np.isnan(m.keyframes[1].ur[3])  # kept, as mono
+    assert 1 not in m.points[b.id].observations and m.keyframes[1].ur[4] == 100.0  # removed
+
+
 def test_observations_are_kept_consistent():
     m = _map_with()
     p = m.add_point(np.zeros(3), 0, 5)

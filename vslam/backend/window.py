@@ -46,6 +46,15 @@ class DenseWindow:
         chi2, _ = whitened_sq_errors(pc, self.meas, self.stereo, self.sigma, camera)
         return chi2
 
+    def uv_chi2(self, Twc: np.ndarray, P: np.ndarray, camera: StereoCamera) -> np.ndarray:
+        """(M,) as ``chi2`` from the left-image pixel (uL, v) alone: is the match right when the depth is not?"""
+        if self.kf.shape[0] == 0:
+            return np.zeros(0)
+        Tcw = inv_T(Twc)
+        pc = np.einsum("mij,mj->mi", Tcw[self.ik, :3, :3], P[self.ip]) + Tcw[self.ik, :3, 3]
+        chi2, _ = whitened_sq_errors(pc, self.meas, np.zeros_like(self.stereo), self.sigma, camera)
+        return chi2
+
 
 def dense_window(problem: BAProblem, camera: StereoCamera, cfg: BackendConfig) -> DenseWindow:
     """Problem -> DenseWindow. Raises ValueError if an observation names an unknown keyframe or point id."""

@@ -270,4 +270,4 @@ class LocalMapper:
             res = local_bundle_adjustment(problem, self.stereo_cam, self.backend)
         if self.lines is not None:
             self.lines.apply_ba(problem.lines, getattr(res, "lines", {}), getattr(res, "line_inliers", None), res.poses)
-        m.apply_adjustment(res.poses, res.points, res.inliers, okf, opt, set(fixed))
+        m.apply_adjustment(res.poses, res.points, res.inliers, okf, opt, set(fixed), getattr(res, "depth_only", None))

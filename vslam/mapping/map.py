@@ -179,7 +179,8 @@ class Map:
         dist = descriptor_rows(D[a], D[b]).reshape(n, n)
         mp.descriptor = D[int(np.argmin(np.median(dist, axis=1)))].copy()
 
-    def apply_adjustment(self, poses: dict, points: dict, inliers: np.ndarray, obs_kf, obs_pt, fixed=()) -> None:
+    def apply_adjustment(self, poses: dict, points: dict, inliers: np.ndarray, obs_kf, obs_pt, fixed=(),
+                         depth_only: np.ndarray | None = None) -> None:
         """Write a bundle adjustment back: keyframe poses (not those in ``fixed``), the points still in the map,
         and drop the observations (obs_kf[i], obs_pt[i]) the BA classified as outliers (``inliers[i]`` False)."""
         for k, T in poses.items():
@@ -189,6 +190,12 @@ class Map:
             if p in self.points:
                 self.points[p].xyz = np.asarray(X, dtype=np.float64)
         for i in np.flatnonzero(~np.asarray(inliers, bool)):
+            if depth_only is not None and depth_only[i]:  # keep the match as a mono observation
+                mp = self.points.get(int(obs_pt[i]))
+                kp = None if mp is None else mp.observations.get(int(obs_kf[i]))
+                if kp is not None:
+                    self.keyframes[int(obs_kf[i])].ur[kp] = np.nan
+                    continue
             self.remove_observation(int(obs_pt[i]), int(obs_kf[i]))
 
     def stats(self) -> dict[str, int]:
