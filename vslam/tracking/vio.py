@@ -22,12 +22,14 @@ Prediction: once initialised, a frame's pose prior is the IMU propagation of the
 constant-velocity model. A frame vision cannot track (blackout, too few inliers) keeps the predicted pose
 and velocity, so the trajectory follows the IMU until tracking recovers around the predicted pose.
 
-Measured (``vslam bench``, synthetic room 300 frames 320x240, realistic IMU noise, one run each): stereo-inertial
-ATE 0.033 m vs stereo-only 0.080 m (0.047 m with this module's 0.5 s keyframe rule, so most of the gain is the
-IMU); RGB-D-inertial 0.026 m vs 0.100 m; with frames 150-179 black the VIO error inside the blackout stays below
-0.030 m (ATE 0.036 m) while constant-velocity prediction drifts to 0.33 m. Mono-inertial: Sim3 scale 1.062 over
-the whole run but 1.009 on the frames after the refinements (from 3 s on), i.e. the frames written before them
-carry the error. The price is local BA time: ~1.9 s vs ~0.6 s per keyframe (the IMU chain adds keyframes to the
+Measured (``vslam bench``, synthetic room 300 frames 320x240, realistic IMU noise, one run each), 2026-11-23:
+stereo-inertial ATE 0.033 m vs stereo-only 0.080 m; RGB-D-inertial 0.026 m vs 0.100 m. 2026-12-01, after the
+vision side improved (RGB-D disparity noise model, sub-pixel stereo, stereo close-point keyframe rule):
+stereo-inertial 0.032 m vs stereo-only 0.031 m -- the IMU no longer adds accuracy there (with the old stereo
+keyframe rule: 0.027 vs 0.114 m), so the inertial factors' weighting is the next thing to look at --;
+RGB-D-inertial 0.010 vs 0.024 m; with frames 150-179 black the VIO run keeps ATE 0.032 m while
+constant-velocity prediction drifts (0.065 m). Mono-inertial: Sim3 scale 1.046 over the whole run (2026-11-23:
+1.062 overall, 1.009 on the frames after the refinements), i.e. the frames written before them carry the error. The price is local BA time: ~1.9 s vs ~0.6 s per keyframe (the IMU chain adds keyframes to the
 window, and the marginal covariance of the next oldest state is computed).
 """
 
