@@ -100,3 +100,16 @@ def test_unreadable_sidecar_is_ignored(tmp_path, caplog):
     p.write_text('{"version": 99, "rows": {}}')
     assert load_sidecar(p) == {}
     assert "ignoring the earlier rows" in caplog.text
+
+
+def test_make_dynamic_rows_name_their_sequence(tmp_path):
+    from vslam.bench import _composited
+
+    with pytest.raises(ConfigError, match="needs 'data'"):
+        _composited({"people": 2}, tmp_path)
+    with pytest.raises(ConfigError, match="takes people, seed, coco"):
+        _composited({"data": "tum/x", "walkers": 2}, tmp_path)
+    done = tmp_path / "_data" / "x-people2-seed1"
+    done.mkdir(parents=True)
+    (done / "rgb.txt").write_text("# already composited\n")  # written once, then reused as it is
+    assert _composited({"data": "tum/x", "people": 2, "seed": 1}, tmp_path) == done.resolve()

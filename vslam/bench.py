@@ -54,6 +54,9 @@ class BenchRow:
     # run serially, over a process pool and on a local Ray instance of ``workers`` each; wall times compared
     grid: dict[str, Any] = field(default_factory=dict)
     workers: int = 2
+    # kind "run" on composited people (issue 5): {data: TUM folder under $VSLAM_DATA, people: 3, seed: 0,
+    # coco: coco128}; ``vslam make-dynamic`` writes it once under <runs>/_data and dataset.path points there
+    make_dynamic: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -311,6 +314,8 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
     for row in rows:
         cfg = str(Path(row.config) if Path(row.config).is_absolute() else root / row.config) if row.config else None
         over = parse_overrides(list(row.set))
+        if row.make_dynamic:
+            over = deep_merge(over, {"dataset": {"kind": "tum", "path": str(_composited(row.make_dynamic, jobs_dir))}})
         if row.kind == "batch":  # runs its own serial / pool / Ray passes
             result = batch_row(cfg, over, row.grid, row.workers, str(jobs_dir / row.name))
             kept[row.name] = {"result": _json_safe(result), "measured": now, "repeat": 1, "machine": machine}
@@ -332,6 +337,22 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
                                 "rows": {r.name: e for r, e in entries}}, indent=1, default=float) + "\n")
     output.write_text(render_markdown(suite, entries, now, machine))
     return output
+
+
+def _composited(spec: dict[str, Any], jobs_dir: Path) -> Path:
+    """The make-dynamic sequence a row names, written on first use (seeded: the same spec, the same frames)."""
+    from vslam.dynamic.composite import MakeDynamicConfig, make_dynamic
+    from vslam.paths import data_root
+
+    unknown = set(spec) - {"data", "people", "seed", "coco"}
+    if unknown or "data" not in spec:
+        raise ConfigError(f"make_dynamic: needs 'data' and takes people, seed, coco; got {sorted(spec)}")
+    people, seed = int(spec.get("people", 3)), int(spec.get("seed", 0))
+    out = (jobs_dir / "_data" / f"{Path(str(spec['data'])).name}-people{people}-seed{seed}").resolve()
+    if not (out / "rgb.txt").is_file():
+        make_dynamic(data_root() / str(spec["data"]), out, data_root() / str(spec.get("coco", "coco128")),
+                     MakeDynamicConfig(n_people=people, seed=seed))
+    return out
 
 
 def _sweep_rows(rows: list[BenchRow], sweep: dict[str, list[Any]]) -> list[BenchRow]:
