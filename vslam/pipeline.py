@@ -195,12 +195,13 @@ class Pipeline:
             with open(stats_path, "w", newline="") as fstats:
                 sw = csv.writer(fstats)
                 sw.writerow(STAT_COLUMNS)
-                frames = prefetch(seq, n_total)
-                for k in range(n_total):
+                frames, k = prefetch(seq, n_total), -1
+                while True:
                     t_wait = time.perf_counter()
                     frame = next(frames, None)  # decoded on a background thread: this is the time tracking waited
-                    if frame is None:
+                    if frame is None:  # the generator is exhausted (and has joined its thread)
                         break
+                    k += 1
                     ms_decode = (time.perf_counter() - t_wait) * 1e3
                     if stamps and not frame.timestamp > stamps[-1]:
                         # A second image at the same instant would give a trajectory no reader accepts
