@@ -35,7 +35,12 @@ class MappingConfig:
     min_shared: int = 15  # covisibility edge: keyframes sharing at least this many points
     cull_found_ratio: float = 0.25  # recent point found/visible below this -> removed
     cull_min_obs_mono: int = 2  # recent point seen by fewer keyframes after cull_age -> removed
-    cull_min_obs_depth: int = 3
+    # RGB-D/stereo: ORB-SLAM2's rule is Observations() <= 3 with a stereo observation counting twice, i.e. a
+    # point seen by 2 keyframes survives; 3 keyframes (this field's old value) starved fast or relit
+    # sequences of points (2-loop lighting route: median 40 points per keyframe). Static room 0.0131 ->
+    # 0.0037 m, 2-loop lighting route 0.0826 -> 0.0304 m, TUM teddy 0.0045 -> 0.0042 m, loop room 0.0077 ->
+    # 0.0074 m.
+    cull_min_obs_depth: int = 2
     cull_age: int = 2  # keyframes after creation when the observation count is checked
     fuse_neighbors: int = 6  # fuse new points into this many covisible keyframes (and back)
     fuse_radius_px: float = 3.0
