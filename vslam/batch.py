@@ -90,15 +90,20 @@ def _run_ray(jobs: list[Job], workers: int, address: str) -> list[dict[str, Any]
 METRICS = ("frames", "tracked", "ate_rmse", "rpe_t", "rpe_r", "path_m")
 
 
-def grid_overrides(grid: dict[str, list[Any]]) -> list[dict[str, Any]]:
-    """{KEY: [values]} -> one nested override dict per point of the cartesian product (keys in order)."""
-    from vslam.config import parse_overrides
-
+def grid_sets(grid: dict[str, list[Any]]) -> list[tuple[str, ...]]:
+    """{KEY: [values]} -> the ``KEY=VALUE`` overrides of each point of the cartesian product (keys in order)."""
     keys = list(grid)
     for k in keys:
         if not isinstance(grid[k], (list, tuple)) or not grid[k]:
             raise ConfigError(f"grid '{k}': expected a non-empty list of values, got {grid[k]!r}")
-    return [parse_overrides([f"{k}={v}" for k, v in zip(keys, vals)]) for vals in itertools.product(*(grid[k] for k in keys))]
+    return [tuple(f"{k}={v}" for k, v in zip(keys, vals)) for vals in itertools.product(*(grid[k] for k in keys))]
+
+
+def grid_overrides(grid: dict[str, list[Any]]) -> list[dict[str, Any]]:
+    """{KEY: [values]} -> one nested override dict per point of the cartesian product (keys in order)."""
+    from vslam.config import parse_overrides
+
+    return [parse_overrides(list(sets)) for sets in grid_sets(grid)]
 
 
 def parse_sweep(items: list[str]) -> dict[str, list[Any]]:

@@ -357,16 +357,11 @@ def _composited(spec: dict[str, Any], jobs_dir: Path) -> Path:
 
 def _sweep_rows(rows: list[BenchRow], sweep: dict[str, list[Any]]) -> list[BenchRow]:
     """Each row once per point of the sweep grid, named ``NAME[KEY=V,...]``."""
-    import itertools
+    from vslam.batch import grid_sets
 
-    keys = list(sweep)
-    out = []
-    for row in rows:
-        if row.kind not in ("run", "synthetic_render"):
-            continue
-        for vals in itertools.product(*(sweep[k] for k in keys)):
-            sets = tuple(f"{k}={v}" for k, v in zip(keys, vals))
-            out.append(dataclasses.replace(row, name=f"{row.name}[{','.join(sets)}]", set=row.set + sets))
+    points = grid_sets(sweep)
+    out = [dataclasses.replace(row, name=f"{row.name}[{','.join(sets)}]", set=row.set + sets)
+           for row in rows if row.kind in ("run", "synthetic_render") for sets in points]
     if not out:
         raise ConfigError("--sweep: none of the selected rows is a pipeline run")
     return out

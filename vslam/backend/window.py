@@ -39,20 +39,18 @@ class DenseWindow:
 
     def chi2(self, Twc: np.ndarray, P: np.ndarray, camera: StereoCamera) -> np.ndarray:
         """(M,) unrobust whitened squared errors at poses Twc (K,4,4) and points P (P,3); inf = NaN or behind."""
-        if self.kf.shape[0] == 0:
-            return np.zeros(0)
-        Tcw = inv_T(Twc)
-        pc = np.einsum("mij,mj->mi", Tcw[self.ik, :3, :3], P[self.ip]) + Tcw[self.ik, :3, 3]
-        chi2, _ = whitened_sq_errors(pc, self.meas, self.stereo, self.sigma, camera)
-        return chi2
+        return self._chi2(Twc, P, camera, self.stereo)
 
     def uv_chi2(self, Twc: np.ndarray, P: np.ndarray, camera: StereoCamera) -> np.ndarray:
         """(M,) as ``chi2`` from the left-image pixel (uL, v) alone: is the match right when the depth is not?"""
+        return self._chi2(Twc, P, camera, np.zeros_like(self.stereo))
+
+    def _chi2(self, Twc: np.ndarray, P: np.ndarray, camera: StereoCamera, stereo: np.ndarray) -> np.ndarray:
         if self.kf.shape[0] == 0:
             return np.zeros(0)
         Tcw = inv_T(Twc)
         pc = np.einsum("mij,mj->mi", Tcw[self.ik, :3, :3], P[self.ip]) + Tcw[self.ik, :3, 3]
-        chi2, _ = whitened_sq_errors(pc, self.meas, np.zeros_like(self.stereo), self.sigma, camera)
+        chi2, _ = whitened_sq_errors(pc, self.meas, stereo, self.sigma, camera)
         return chi2
 
 

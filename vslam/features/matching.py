@@ -79,24 +79,29 @@ def match_by_projection(
         return empty
     pi = np.nonzero(valid)[0]
     ki = ki[valid].astype(np.int64)
-    dist = descriptor_rows(pt_desc[pi], kp_desc[ki]).astype(np.float64)
-    # best and second best per point
-    order = np.lexsort((ki, dist, pi))
-    pi, ki, dist = pi[order], ki[order], dist[order]
-    first = np.r_[True, pi[1:] != pi[:-1]]
-    second = np.r_[False, first[:-1]] & ~first
-    best_p, best_k, best_d = pi[first], ki[first], dist[first]
-    sec_d = np.full(len(pred_uv), np.inf)
-    sec_d[pi[second]] = dist[second]
-    ok = (best_d <= max_dist) & (best_d < ratio * sec_d[best_p])
-    best_p, best_k, best_d = best_p[ok], best_k[ok], best_d[ok]
-    if len(best_p) == 0:
-        return empty
-    # one point per keypoint: the smallest distance keeps it
-    order = np.lexsort((best_p, best_d, best_k))
-    best_p, best_k = best_p[order], best_k[order]
-    keep = np.r_[True, best_k[1:] != best_k[:-1]]
-    out = np.stack([best_p[keep], best_k[keep]], axis=1)
+    return best_pairs(pi, ki, descriptor_rows(pt_desc[pi], kp_desc[ki]).astype(np.float64), max_dist, ratio)
+
+
+def best_pairs(qi: np.ndarray, ti: np.ndarray, dist: np.ndarray, max_dist: float, ratio: float | None) -> np.ndarray:
+    """From candidate pairs (query qi, target ti, descriptor distance dist), each (M,): per query its closest
+    target, kept when <= max_dist and (ratio not None) < ratio x the query's second-best distance; then one
+    query per target, the smallest distance winning. Ties break by index, so the result is deterministic.
+    -> (K,2) (query, target) sorted by query."""
+    order = np.lexsort((ti, dist, qi))
+    qi, ti, dist = qi[order], ti[order], dist[order]
+    first = np.r_[True, qi[1:] != qi[:-1]] if len(qi) else np.zeros(0, bool)
+    best_q, best_t, best_d = qi[first], ti[first], dist[first]
+    ok = best_d <= max_dist
+    if ratio is not None:
+        second = np.r_[False, first[:-1]] & ~first
+        sec = np.full(int(qi.max()) + 1 if len(qi) else 0, np.inf)
+        sec[qi[second]] = dist[second]
+        ok &= best_d < ratio * sec[best_q]
+    best_q, best_t, best_d = best_q[ok], best_t[ok], best_d[ok]
+    order = np.lexsort((best_q, best_d, best_t))
+    best_q, best_t = best_q[order], best_t[order]
+    keep = np.r_[True, best_t[1:] != best_t[:-1]] if len(best_t) else np.zeros(0, bool)
+    out = np.stack([best_q[keep], best_t[keep]], axis=1).astype(np.int64).reshape(-1, 2)
     return out[np.argsort(out[:, 0], kind="stable")]
 
 
@@ -136,18 +141,4 @@ def match_epipolar(
     ia, jb = np.nonzero(ok)
     if len(ia) == 0:
         return empty
-    d = descriptor_rows(desc_a[ia], desc_b[jb]).astype(np.float64)
-    order = np.lexsort((jb, d, ia))  # per a: by distance, ties by index
-    ia, jb, d = ia[order], jb[order], d[order]
-    first = np.r_[True, ia[1:] != ia[:-1]]
-    second = np.r_[False, first[:-1]] & ~first
-    sec = np.full(len(uv_a), np.inf)
-    sec[ia[second]] = d[second]
-    best_a, best_b, best_d = ia[first], jb[first], d[first]
-    keep = (best_d <= max_dist) & (best_d < ratio * sec[best_a])
-    best_a, best_b, best_d = best_a[keep], best_b[keep], best_d[keep]
-    order = np.lexsort((best_a, best_d, best_b))  # one a per b: the smallest distance keeps it
-    best_a, best_b = best_a[order], best_b[order]
-    uniq = np.r_[True, best_b[1:] != best_b[:-1]] if len(best_b) else np.zeros(0, bool)
-    out = np.stack([best_a[uniq], best_b[uniq]], axis=1).astype(np.int64)
-    return out[np.argsort(out[:, 0], kind="stable")]
+    return best_pairs(ia, jb, descriptor_rows(desc_a[ia], desc_b[jb]).astype(np.float64), max_dist, ratio)

@@ -24,7 +24,7 @@ import numpy as np
 
 from vslam.data.types import Calibration
 from vslam.features.base import Features
-from vslam.features.matching import hamming_rows
+from vslam.features.matching import best_pairs, hamming_rows
 
 _W = 5  # half patch
 _L = 5  # half search range (pixels of the keypoint's level)
@@ -60,26 +60,14 @@ def _row_matches(left: Features, right: Features, fx_b: float, min_depth: float,
     ok = (dv <= band[:, None]) & (disp >= fx_b / max_depth) & (disp <= fx_b / min_depth)
     ok &= np.abs(left.octave[:, None] - right.octave[None, :]) <= 1
     il, ir = np.nonzero(ok)
-    if len(il) == 0:
-        return il, ir
-    d = hamming_rows(left.desc[il], right.desc[ir])
-    keep = d <= max_hamming
-    il, ir, d = il[keep], ir[keep], d[keep]
-    order = np.lexsort((ir, d, il))
-    il, ir, d = il[order], ir[order], d[order]
-    first = np.r_[True, il[1:] != il[:-1]] if len(il) else np.zeros(0, bool)
-    il, ir, d = il[first], ir[first], d[first]
-    order = np.lexsort((il, d, ir))  # one left keypoint per right keypoint: the closest descriptor
-    il, ir = il[order], ir[order]
-    uniq = np.r_[True, ir[1:] != ir[:-1]] if len(ir) else np.zeros(0, bool)
-    return il[uniq], ir[uniq]
+    pairs = best_pairs(il, ir, hamming_rows(left.desc[il], right.desc[ir]).astype(np.float64), max_hamming, None)
+    return pairs[:, 0], pairs[:, 1]
 
 
-def _refine(pyr_l: list[np.ndarray], pyr_r: list[np.ndarray], xl: np.ndarray, y: np.ndarray, xr: np.ndarray,
+def _refine(img_l: np.ndarray, img_r: np.ndarray, xl: np.ndarray, y: np.ndarray, xr: np.ndarray,
             ) -> tuple[np.ndarray, np.ndarray]:
-    """One level: integer left (xl, y), right guess xr (K,) level pixels -> (sub-pixel right x (K,), SAD (K,));
-    NaN where the patch leaves the image or the minimum is not interior."""
-    img_l, img_r = pyr_l, pyr_r
+    """One pyramid level (int16 images): integer left (xl, y), right guess xr (K,) level pixels ->
+    (sub-pixel right x (K,), SAD (K,)); NaN where the patch leaves the image or the minimum is not interior."""
     h, w = img_l.shape
     k = len(xl)
     out, sad = np.full(k, np.nan), np.full(k, np.inf)

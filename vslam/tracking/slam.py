@@ -74,8 +74,10 @@ class SlamTracker:
         # the disparity's own noise where it is measured apart from the keypoint: a depth sensor, or the
         # sub-pixel stereo refinement of a rectified rig (``vslam.features.stereo``)
         self.rectified = sensor == "stereo" and cfg.tracking.stereo_refine and is_rectified(calibration)
-        disparity_sigma = {"rgbd": cfg.backend.rgbd_disparity_sigma}.get(sensor, 0.0)
-        if self.rectified:
+        disparity_sigma = 0.0
+        if sensor == "rgbd":
+            disparity_sigma = cfg.backend.rgbd_disparity_sigma
+        elif self.rectified:
             disparity_sigma = cfg.backend.stereo_disparity_sigma
         self.stereo_cam = StereoCamera(self.cam.fx, self.cam.fy, self.cam.cx, self.cam.cy, baseline, disparity_sigma)
         self.extractor = make_extractor(cfg.features)
