@@ -241,16 +241,19 @@ class Pipeline:
                 w.close()
         seconds = time.perf_counter() - t_start
         paths.update(odo.finish(out))  # keyframes and map (SLAM); nothing for the baseline
-        loop = getattr(odo, "loop", None)
-        if loop is not None and loop.stats.corrected and len(poses):  # a loop moved keyframes: frames follow them
-            poses = list(loop.final_poses())
+        # a loop closure or a monocular inertial rescale moved the keyframes: every frame follows its own
+        final = odo.final_poses(indices) if hasattr(odo, "final_poses") and len(poses) else None
+        if final is not None:
+            poses = list(final)
             paths["trajectory_final"] = write_trajectory(out / "trajectory_final.tum.txt",
                                                          Trajectory(np.array(stamps), np.array(poses)), "tum")
         if backfill and len(poses):  # monocular frames before the map, localised once it existed
             at = {idx: i for i, idx in enumerate(indices)}
             for idx, T in backfill.items():
                 if idx in at:
-                    poses[at[idx]], tracked[at[idx]] = T, True
+                    tracked[at[idx]] = True
+                    if final is None:  # (else they are in ``final`` already, through the first keyframe)
+                        poses[at[idx]] = T
             log.info("%d frames before the monocular initialisation localised afterwards", len(backfill))
             paths["trajectory_final"] = write_trajectory(out / "trajectory_final.tum.txt",
                                                          Trajectory(np.array(stamps), np.array(poses)), "tum")

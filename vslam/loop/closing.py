@@ -71,7 +71,6 @@ class LoopCloser:
         self.loop_edges: list[PoseEdge] = []
         self.stats = LoopStats()
         self._groups: list[tuple[set[int], int]] = []  # consistent candidate groups of the previous keyframe
-        self._frames: list[tuple[int | None, np.ndarray]] = []  # per tracked frame: (reference kf, T_ref_cam)
 
     # -- detection --------------------------------------------------------------
     def detect(self, kf: KeyFrame, vec: np.ndarray) -> list[int]:
@@ -211,19 +210,6 @@ class LoopCloser:
         return path
 
     # -- final trajectory ---------------------------------------------------------------
-    def record_frame(self, ref_kf: int | None, T_world_cam: np.ndarray) -> None:
-        """Remember a frame's pose relative to its reference keyframe (None: not initialised yet)."""
-        if ref_kf is None or ref_kf not in self.map.keyframes:
-            self._frames.append((None, np.array(T_world_cam, dtype=np.float64)))
-        else:
-            self._frames.append((ref_kf, inv_T(self.map.keyframes[ref_kf].T_world_cam) @ T_world_cam))
-
-    def final_poses(self) -> np.ndarray:
-        """(F,4,4) T_world_cam of every recorded frame re-expressed through its reference keyframe's *current*
-        pose (ORB-SLAM's SaveTrajectory): frames before a loop get the loop's correction too."""
-        out = [T if k is None else self.map.keyframes[k].T_world_cam @ T for k, T in self._frames]
-        return np.array(out).reshape(-1, 4, 4)
-
     # -- relocalisation ---------------------------------------------------------------
     def relocalise(self, tracker, feats: Features, ur: np.ndarray, image: np.ndarray | None = None):
         """Tracking was lost: try the keyframes most similar to this frame. -> TrackResult | None."""
@@ -244,7 +230,7 @@ def attach_saved_map(slam, path: str) -> None:
     from vslam.loop.mapio import load_map
 
     loaded = load_map(path)
-    slam.map = slam.tracker.map = slam.mapper.map = slam.loop.map = loaded.map
+    slam.map = slam.tracker.map = slam.mapper.map = slam.loop.map = slam.frames.map = loaded.map
     if loaded.database.dim != slam.loop.db.dim:
         raise ValueError(f"{path}: place descriptors of dimension {loaded.database.dim}, this config uses {slam.loop.db.dim}")
     slam.loop.db = loaded.database

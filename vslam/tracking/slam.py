@@ -28,6 +28,7 @@ from vslam.mapping.line_map import LineSlam
 from vslam.mapping.local_mapping import LocalMapper, MappingConfig
 from vslam.mapping.map import Map
 from vslam.tracking.baseline import FrameEstimate
+from vslam.tracking.frame_log import FrameLog
 from vslam.tracking.initializer import InitConfig
 from vslam.tracking.mono_init import MonoInitializer
 from vslam.tracking.tracker import Tracker, TrackingConfig, TrackResult, need_keyframe
@@ -82,6 +83,7 @@ class SlamTracker:
         self.stereo_cam = StereoCamera(self.cam.fx, self.cam.fy, self.cam.cx, self.cam.cy, baseline, disparity_sigma)
         self.extractor = make_extractor(cfg.features)
         self.map = Map()
+        self.frames = FrameLog(self.map)  # for trajectory_final: frames follow their keyframes (final_poses)
         self.tracker = Tracker(self.map, self.cam, self.stereo_cam, cfg.tracking, cfg.backend)
         self.mapper = LocalMapper(self.map, self.cam, self.stereo_cam, sensor, cfg.mapping, cfg.backend)
         self.mono_init = MonoInitializer(self.cam, cfg.init) if sensor == "mono" else None
@@ -199,8 +201,7 @@ class SlamTracker:
         self._prev_tracked = est.tracked
         self._n_frames += 1
         est.T_world_cam = self.T_world_cam.copy()
-        if self.loop is not None:  # for the final trajectory: frames follow their keyframe when a loop moves it
-            self.loop.record_frame(self.ref_kf, self.T_world_cam)
+        self.frames.record(frame.index, self.ref_kf, self.T_world_cam)
         est.times_ms = {"features": (t_feat - t0) * 1e3, "depth": (t2 - t1) * 1e3, "pose": (t3 - t2) * 1e3,
                         "mapping": (t4 - t3) * 1e3, **{f"map_{k}": v for k, v in ms_map.items()}}
         if self.dynamic is not None:
@@ -230,6 +231,7 @@ class SlamTracker:
             return
         T, scale = out
         self.T_world_cam = self.vio.transform_pose(self.T_world_cam, T, scale)  # type: ignore[union-attr]
+        self.frames.transform(T, scale)  # monocular: the frames tracked so far were at the old map scale
         self.velocity = self.velocity.copy()
         self.velocity[:3, 3] *= scale
         if self.vio.method == "dynamic" and self.ref_kf is not None:  # type: ignore[union-attr]  # (and refinements)
@@ -257,6 +259,8 @@ class SlamTracker:
             if res is not None and res.ok:
                 out[idx] = res.T_world_cam
         self._pre_init = []
+        for idx, T in out.items():  # they follow kf0 when the map moves later (loop, mono-inertial scale)
+            self.frames.record(idx, kf0.id, T)
         return out
 
     def _initialize(self, frame: Frame, feats: Features, depth: np.ndarray, ur: np.ndarray) -> bool:
@@ -318,6 +322,12 @@ class SlamTracker:
         if self.lines is not None:
             stats.update(self.lines.stats())
         return stats
+
+    def final_poses(self, frame_indices: list[int]) -> np.ndarray | None:
+        """(F,4,4) poses of the frames through their reference keyframes when a loop correction or a monocular
+        inertial rescale moved the map after they were written (``FrameLog``), else None (the online poses stand)."""
+        moved = self.frames.moved or (self.loop is not None and self.loop.stats.corrected > 0)
+        return self.frames.poses(frame_indices) if moved else None
 
     def finish(self, out_dir: str | Path) -> dict[str, Path]:
         """Write ``keyframes.tum.txt`` (optimised keyframe poses) and ``map.ply`` (map points, world frame);

@@ -28,9 +28,13 @@ vision side improved (RGB-D disparity noise model, sub-pixel stereo, stereo clos
 stereo-inertial 0.032 m vs stereo-only 0.031 m -- the IMU no longer adds accuracy there (with the old stereo
 keyframe rule: 0.027 vs 0.114 m), so the inertial factors' weighting is the next thing to look at --;
 RGB-D-inertial 0.010 vs 0.024 m; with frames 150-179 black the VIO run keeps ATE 0.032 m while
-constant-velocity prediction drifts (0.065 m). Mono-inertial: Sim3 scale 1.046 over the whole run (2026-11-23:
-1.062 overall, 1.009 on the frames after the refinements), i.e. the frames written before them carry the error. The price is local BA time: ~1.9 s vs ~0.6 s per keyframe (the IMU chain adds keyframes to the
-window, and the marginal covariance of the next oldest state is computed).
+constant-velocity prediction drifts (0.065 m). Mono-inertial (2026-12-01): the final trajectory (frames through
+their keyframes after the rescales, ``FrameLog``) had Sim3 scale 1.061; the alignments solved on keyframes 0.1 s
+apart, whose position noise shrinks the scale (``vi_align(min_dt_s=)``), and a 1.1 deg two-view start read a
+~30 % rotation error as gyro bias. Alignment keyframes >= 0.3 s apart, a 2 deg initial parallax and a 20-keyframe
+IMU chain (configs/synthetic_vio_mono.yaml): scale 0.995 / 1.009 / 1.003 / 0.993 over seeds 0-3. The price is
+local BA time: ~1.9 s vs ~0.6 s per keyframe (the IMU chain adds keyframes to the window, and the marginal
+covariance of the next oldest state is computed).
 """
 
 from __future__ import annotations
@@ -81,6 +85,9 @@ class VioConfig:
     # velocities, gyro bias and (monocular) scale, which a windowed BA cannot move once keyframes are held.
     refine_after_s: tuple[float, ...] = (2.0, 5.0)
     refine_window_s: float = 4.0
+    # the alignments solve on keyframes at least this far apart (``vi_align(min_dt_s=)``: visual position noise
+    # shrinks the scale when keyframes are close)
+    align_min_dt_s: float = 0.3
 
 
 class ImuBuffer:
@@ -316,7 +323,7 @@ class Vio:
         T_map_cam = np.array([k.T_world_cam for k in kfs])
         try:
             al = vi_align(stamps, T_map_cam, self.T_bc, imu=self.buf.upto(float(stamps[-1])), params=self.params,
-                          gravity=self.cfg.imu.gravity)
+                          gravity=self.cfg.imu.gravity, min_dt_s=self.cfg.align_min_dt_s)
         except InertialError as e:
             log.info("visual-inertial alignment failed (%s); retrying at the next keyframe", e)
             return None
@@ -351,7 +358,8 @@ class Vio:
         b = kfs[-1].bias
         try:
             al = vi_align(stamps, np.array([k.T_world_cam for k in kfs]), self.T_bc, imu=self.buf.upto(float(stamps[-1])),
-                          params=self.params, gyro_bias=b[3:], gravity=self.cfg.imu.gravity)
+                          params=self.params, gyro_bias=b[3:], gravity=self.cfg.imu.gravity,
+                          min_dt_s=self.cfg.align_min_dt_s)
         except InertialError as e:
             log.info("inertial refinement failed (%s)", e)
             return None
