@@ -455,6 +455,23 @@ def _imu_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
             lines.append(f"| {row.name} | {w['length_s']:g} | {w['windows']} | {w['pos_rmse_m']:.4f} | {w['rot_rmse_deg']:.3f} "
                          f"| {w['sigma_pos_median_m']:.4f} | {w['nees_mean']:.0f} ({w['nees_median']:.0f}) "
                          f"| {w['nees_rot_mean']:.0f} / {w['nees_pos_mean']:.0f} | {w['noise_inflation_for_consistency']:.1f} | {row.target} |")
+    ident = [(row, r) for row, r in rows if "error" not in r and r.get("identified")]
+    if ident:
+        lines += ["", "The same windows with an identified noise model (`vslam.inertial.evaluate.fit_noise_model`): white-noise "
+                  "densities plus the std of the ground-truth biases' own error, fitted by maximum likelihood on the windows "
+                  "of all three lengths that start in the first half of the flight; NEES on the second half (held out):", "",
+                  "| row | gyro density (× sensor.yaml) | accel density (×) | σ of GT gyro / accel bias | window s "
+                  "| held-out windows | NEES mean (median) | NEES rot / pos | share < χ²₆ 95 % | target |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
+        for row, r in ident:
+            d, m = r["identified"], r["identified"]["model"]
+            for w in d["held_out"]:
+                lines.append(f"| {row.name} | {m['gyro_noise_density']:.2e} ({d['gyro_density_x_datasheet']:.1f}) "
+                             f"| {m['accel_noise_density']:.2e} ({d['accel_density_x_datasheet']:.1f}) "
+                             f"| {m['gyro_bias_sigma']:.1e} rad/s / {m['accel_bias_sigma']:.3f} m/s² | {w['length_s']:g} "
+                             f"| {w['windows']} | {w['nees_mean']:.1f} ({w['nees_median']:.1f}) "
+                             f"| {w['nees_rot_mean']:.1f} / {w['nees_pos_mean']:.1f} | {100 * w['frac_nees_below_chi2_95']:.0f} % "
+                             f"| {row.target} |")
     for row, r in rows:
         if "error" not in r:
             st = r["static"]
