@@ -44,7 +44,7 @@ PER_FRAME = ("features", "depth", "pose", "total")  # run on every frame: median
 @dataclass(frozen=True)
 class BenchRow:
     name: str
-    kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch"] = "run"
+    kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch", "place"] = "run"
     config: str = ""  # pipeline YAML, relative to the suite file's folder's parent (the repo root) or absolute
     set: tuple[str, ...] = ()  # KEY=VALUE overrides
     note: str = ""
@@ -174,12 +174,39 @@ def _job_imu_preint(overrides: dict[str, Any]) -> dict[str, Any]:
     return {**out, "seconds": time.perf_counter() - t0, "peak_rss_mb": _peak_rss_mb()}
 
 
+def _job_place(overrides: dict[str, Any]) -> dict[str, Any]:
+    """Issue 7: recall@1/5/10 of the place descriptors (``set``: descriptors=[bow, vladnet], weights=<file>,
+    seed=<held-out synthetic route>, tum=<folder under $VSLAM_DATA>) and the keyframe database's cost at 10k."""
+    from vslam.loop.place_data import halves, sequence_places, synthetic_route
+    from vslam.loop.retrieval import bow_describer, database_costs, evaluate_retrieval, vladnet_describer
+    from vslam.loop.descriptor import default_vladnet_path
+    from vslam.paths import data_root
+
+    t0 = time.perf_counter()
+    names = [str(n) for n in overrides.get("descriptors", ("bow", "vladnet"))]
+    make = {"bow": bow_describer, "vladnet": lambda: vladnet_describer(str(overrides.get("weights") or default_vladnet_path()))}
+    desc = {n: make[n]() for n in names}
+    route = synthetic_route(int(overrides.get("seed", 0)), int(overrides.get("frames", 600)), stride=int(overrides.get("stride", 3)))
+    db, q = halves(route)
+    sets = {f"synthetic room seed {int(overrides.get('seed', 0))}, 2 laps, lighting change: lap 2 vs lap 1 (≤ 0.5 m, ≤ 30°)":
+            evaluate_retrieval(desc, db, q, 0.5, 30.0)}
+    tum = data_root() / str(overrides.get("tum", "tum/rgbd_dataset_freiburg3_teddy"))
+    if tum.exists():
+        t = sequence_places(tum)
+        sets["TUM fr3/teddy, every frame vs the frames ≥ 30 apart (≤ 0.3 m, ≤ 30°)"] = evaluate_retrieval(desc, t, None, 0.3, 30.0, 30)
+    dims = {n: next(iter(sets.values()))[n]["dim"] for n in names}
+    return {"sets": sets, "costs": {n: database_costs(d) for n, d in dims.items()}, "seconds": time.perf_counter() - t0,
+            "peak_rss_mb": _peak_rss_mb()}
+
+
 def execute_job(kind: str, config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
     """One job in this process -> its result row (``vslam.batch`` calls this in its worker processes)."""
     if kind == "fusion":
         return _job_fusion(str(config), overrides, out_dir)
     if kind == "imu_preint":
         return _job_imu_preint(overrides)
+    if kind == "place":
+        return _job_place(overrides)
     fn = _job_run if kind == "run" else _job_render
     return fn(config, overrides, out_dir)
 
@@ -321,8 +348,9 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
             kept[row.name] = {"result": _json_safe(result), "measured": now, "repeat": 1, "machine": machine}
         elif row.kind == "fusion":  # one seeded, deterministic run: repeating it only costs time
             plan.append((row, [Job("fusion", row.experiment, over, str(jobs_dir / row.name))]))
-        else:
-            plan.append((row, [Job(row.kind, cfg, over, str(jobs_dir / f"{row.name}-{i}")) for i in range(max(1, repeat))]))
+        else:  # a place row is deterministic and reports no timing that repeats would steady
+            n = 1 if row.kind == "place" else max(1, repeat)
+            plan.append((row, [Job(row.kind, cfg, over, str(jobs_dir / f"{row.name}-{i}")) for i in range(n)]))
     results = iter(run_jobs([j for _, jobs in plan for j in jobs], workers, ray))
     parallel = {"parallel": workers if ray is None else f"ray:{workers}"} if workers > 1 or ray is not None else {}
     for row, jobs in plan:
@@ -399,7 +427,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     ]
     for row, e in entries:
         r, repeat = e["result"], int(e["repeat"])
-        if row.kind in ("fusion", "imu_preint", "batch"):  # own tables below
+        if row.kind in ("fusion", "imu_preint", "batch", "place"):  # own tables below
             continue
         if "error" in r:
             lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | | | | {row.target} |")
@@ -427,6 +455,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
             else:
                 lines.append(f"| {row.name} | {r['headline']} | {r['seed_claim']} | {r['seconds']:.0f} | `{r['report']}` |")
     lines += _imu_table([(row, e["result"]) for row, e in entries if row.kind == "imu_preint"])
+    lines += _place_table([(row, e["result"]) for row, e in entries if row.kind == "place"])
     lines += batch_table([(row, e["result"]) for row, e in entries if row.kind == "batch"])
     notes = [f"- **{row.name}**: {row.note}" for row, _ in entries if row.note]
     if notes:
@@ -492,6 +521,30 @@ def _imu_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
                 lines.append(f"| {row.name} | {a['span_s']:g} | {a['windows']} | {a['scale_err_median_pct']:.2f} / "
                              f"{a['scale_err_max_pct']:.2f} | {a['gravity_err_median_deg']:.2f} / {a['gravity_err_max_deg']:.2f} "
                              f"| {a['gyro_bias_err_median_rad_s']:.4f} |")
+    return lines
+
+
+def _place_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
+    """Issue 7 retrieval: recall@k per evaluation set and descriptor, then the database cost at 10k keyframes."""
+    if not rows:
+        return []
+    lines = ["", "## Place recognition (issue 7)", "",
+             "A query counts when the database holds a frame of the same place; recalled at k when one of its k most "
+             "similar database frames is one. BoW: tf-idf of 512 ORB words on the tracker's keypoints (full image); "
+             "VLADNet: models/vladnet_v1.pt on the image (its model card says what it was trained on: not these sets).", "",
+             "| row | set | descriptor | queries | R@1 | R@5 | R@10 | ms / image | target |", "|---|---|---|---|---|---|---|---|---|"]
+    for row, r in rows:
+        if "error" in r:
+            lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | {row.target} |")
+            continue
+        for set_name, res in r["sets"].items():
+            for d, m in res.items():
+                lines.append(f"| {row.name} | {set_name} | {d} | {m['queries']} | {m['r@1']:.2f} | {m['r@5']:.2f} "
+                             f"| {m['r@10']:.2f} | {m['ms_per_image']:.1f} | {row.target} |")
+    lines += ["", "| row | descriptor | bytes per keyframe | query over 10k keyframes ms |", "|---|---|---|---|"]
+    for row, r in rows:
+        for d, c in r.get("costs", {}).items():
+            lines.append(f"| {row.name} | {d} | {c['bytes_per_keyframe']} | {c['query_ms']:.2f} |")
     return lines
 
 

@@ -206,6 +206,9 @@ def build_parser() -> argparse.ArgumentParser:
     from vslam.dynamic.train_cli import add_cli as add_detector_train_cli
 
     add_detector_train_cli(train_sub)
+    from vslam.loop.train_place import add_cli as add_place_train_cli
+
+    add_place_train_cli(train_sub)
     from vslam.dynamic.composite import add_cli as add_make_dynamic_cli
 
     add_make_dynamic_cli(sub)

@@ -65,7 +65,7 @@ class LoopCloser:
     def __init__(self, slam_map: Map, cam: PinholeCamera, stereo_cam: StereoCamera, sensor: SensorKind,
                  cfg: LoopConfig, backend: BackendConfig, mapper=None, descriptor: PlaceDescriptor | None = None):
         self.map, self.sensor, self.cfg, self.mapper, self.backend = slam_map, sensor, cfg, mapper, backend
-        self.descriptor = descriptor if descriptor is not None else make_place_descriptor(cfg.descriptor, cfg.vocabulary)
+        self.descriptor = descriptor if descriptor is not None else make_place_descriptor(cfg.descriptor, cfg.vocabulary, cfg.weights)
         self.db = KeyframeDatabase(self.descriptor.dim)
         self.verifier = LoopVerifier(cam, stereo_cam, cfg, backend)
         self.loop_edges: list[PoseEdge] = []
@@ -241,7 +241,7 @@ def save_slam_map(slam, path) -> Path:
     """Write a ``SlamTracker``'s map with the place descriptor of every keyframe (computed if missing)."""
     from vslam.loop.mapio import save_map
 
-    desc = slam.loop.descriptor if slam.loop is not None else make_place_descriptor(slam.cfg.loop.descriptor, slam.cfg.loop.vocabulary)
+    desc = slam.loop.descriptor if slam.loop is not None else make_place_descriptor(slam.cfg.loop.descriptor, slam.cfg.loop.vocabulary, slam.cfg.loop.weights)
     db = slam.loop.db if slam.loop is not None else KeyframeDatabase(desc.dim)
     for kf in slam.map.keyframes.values():
         if kf.id not in db:

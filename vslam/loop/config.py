@@ -14,8 +14,9 @@ class LoopConfig:
     # other synthetic / VIO / line rows were not re-checked and it costs ~400 ms per keyframe on the loaded
     # 2-core machine (BoW 8 ms, the rest verification of candidates).
     enabled: bool = False
-    descriptor: str = "bow"  # key of make_place_descriptor
+    descriptor: str = "bow"  # key of make_place_descriptor: bow | vladnet
     vocabulary: str = ""  # vocabulary file; "" = models/orb_bow_k512.npz
+    weights: str = ""  # VLADNet weights; "" = models/vladnet_v1.pt
     # -- detection (ORB-SLAM LoopClosing::DetectLoop) --
     top_k: int = 5  # database candidates per keyframe
     min_score: float = 0.05  # absolute floor on the descriptor similarity

@@ -1,8 +1,8 @@
 """Global place descriptors: one L2-normalised vector per image, compared by dot product.
 
 ``PlaceDescriptor`` is the plug-in interface the keyframe database, loop
-detection and relocalisation use; the learned NetVLAD descriptor (issue 7,
-stretch) will be a second implementation. ``BowDescriptor`` is the non-learned
+detection and relocalisation use; the learned one is ``VladNetDescriptor``
+(``vslam.loop.vladnet``, weights models/vladnet_v1.pt). ``BowDescriptor`` is the non-learned
 baseline: a tf-idf bag of ORB words (DBoW2's weighting) over the keypoints the
 tracker already extracted, so it costs one word assignment per keyframe.
 """
@@ -55,8 +55,17 @@ class BowDescriptor:
         return v / n if n > 0 else v
 
 
-def make_place_descriptor(kind: str, vocabulary: str = "") -> PlaceDescriptor:
-    """Registry by name: ``bow`` (vocabulary file; "" = the shipped models/orb_bow_k512.npz)."""
+def default_vladnet_path() -> Path:
+    return Path(__file__).resolve().parents[2] / "models" / "vladnet_v1.pt"
+
+
+def make_place_descriptor(kind: str, vocabulary: str = "", weights: str = "") -> PlaceDescriptor:
+    """Registry by name: ``bow`` (vocabulary file; "" = the shipped models/orb_bow_k512.npz) or ``vladnet``
+    (weights file; "" = the shipped models/vladnet_v1.pt; torch is imported only then)."""
     if kind == "bow":
         return BowDescriptor(Vocabulary.load(Path(vocabulary) if vocabulary else default_vocabulary_path()))
-    raise ConfigError(f"slam.loop.descriptor: unknown place descriptor {kind!r} (known: bow)")
+    if kind == "vladnet":
+        from vslam.loop.vladnet import VladNetDescriptor
+
+        return VladNetDescriptor.from_file(Path(weights) if weights else default_vladnet_path())
+    raise ConfigError(f"slam.loop.descriptor: unknown place descriptor {kind!r} (known: bow, vladnet)")

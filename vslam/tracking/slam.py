@@ -277,9 +277,9 @@ class SlamTracker:
                 return False
             self.ref_kf, self.last_kf_frame = kfs[1].id, self._n_frames
             self.T_world_cam = kfs[1].T_world_cam.copy()
-            if self.loop is not None:
+            if self.loop is not None:  # the reference view's image is gone: an image descriptor sees only the second
                 for k in kfs:
-                    self.loop.add_keyframe(k)
+                    self.loop.add_keyframe(k, frame.image if k is kfs[1] else None)
             return True
         if int(np.isfinite(depth).sum()) < self.cfg.tracking.min_depth_points:
             return False

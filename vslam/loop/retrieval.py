@@ -1,0 +1,94 @@
+"""Place-retrieval evaluation: recall@k of a place descriptor on database / query sets (issue 7, "Retrieval").
+
+A query counts when the database holds at least one frame of the same place (``place_data.same_place``); it
+is recalled at k when one of its k most similar database frames (cosine = dot of unit descriptors) is such a
+frame. Within one sequence, frames closer than ``exclude_frames`` in time are left out of each other's ranking
+(they are trivially similar and the loop closer never asks for them either). Every descriptor is fed its
+native input: the BoW baseline the tracker's ORB keypoints of the full image, VLADNet the image.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import numpy as np
+
+from vslam.loop.place_data import PlaceSet, same_place
+
+Describer = Callable[[list], np.ndarray]  # images -> (N,D) unit descriptors
+
+
+def bow_describer(n_features: int = 1000) -> Describer:
+    """The loop closer's BoW descriptor on the SLAM front end's ORB keypoints (models/orb_bow_k512.npz)."""
+    from vslam.data.types import PinholeCamera
+    from vslam.features import FeatureConfig, make_extractor
+    from vslam.loop.descriptor import make_place_descriptor
+
+    ext = make_extractor(FeatureConfig(n_features=n_features))
+    bow = make_place_descriptor("bow")
+
+    def run(images: list) -> np.ndarray:
+        out = []
+        for im in images:
+            h, w = im.shape[:2]
+            cam = PinholeCamera(w, h, float(w), float(w), (w - 1) / 2, (h - 1) / 2)
+            out.append(bow.describe(im, ext.detect(im, cam)))
+        return np.array(out, dtype=np.float32)
+
+    return run
+
+
+def vladnet_describer(path: str) -> Describer:
+    from vslam.loop.vladnet import VladNetDescriptor
+
+    d = VladNetDescriptor.from_file(path)
+    return d.describe_many
+
+
+def recall_at(desc_db: np.ndarray, desc_q: np.ndarray, positives: np.ndarray, ks: tuple[int, ...] = (1, 5, 10),
+              excluded: np.ndarray | None = None) -> dict[str, float]:
+    """positives (Q,N) bool; excluded (Q,N) bool pairs never ranked. -> recall@k per k, queries counted."""
+    sim = desc_q @ desc_db.T
+    if excluded is not None:
+        sim = np.where(excluded, -np.inf, sim)
+        positives = positives & ~excluded
+    has = positives.any(axis=1)
+    order = np.argsort(-sim, axis=1, kind="stable")
+    out: dict[str, float] = {"queries": int(has.sum())}
+    for k in ks:
+        hit = np.take_along_axis(positives, order[:, :k], axis=1).any(axis=1)
+        out[f"r@{k}"] = float(hit[has].mean()) if has.any() else float("nan")
+    return out
+
+
+def evaluate_retrieval(describers: dict[str, Describer], db: PlaceSet, queries: PlaceSet | None, pos_m: float,
+                       pos_deg: float, exclude_frames: int = 0, ks: tuple[int, ...] = (1, 5, 10)) -> dict[str, dict]:
+    """recall@k of each describer; ``queries`` None = the same set against itself with temporal exclusion."""
+    q = db if queries is None else queries
+    pos = same_place(q, db, pos_m, pos_deg)
+    excl = None
+    if queries is None:
+        excl = np.abs(q.index[:, None] - db.index[None]) < max(exclude_frames, 1)
+    out = {}
+    for name, fn in describers.items():
+        t0 = time.perf_counter()
+        d_db = fn(db.images)
+        d_q = d_db if queries is None else fn(q.images)
+        ms = (time.perf_counter() - t0) * 1e3 / (len(db) + (0 if queries is None else len(q)))
+        out[name] = {**recall_at(d_db, d_q, pos, ks, excl), "ms_per_image": ms, "dim": int(d_db.shape[1])}
+    return out
+
+
+def database_costs(dim: int, n: int = 10_000, seed: int = 0, repeats: int = 20) -> dict[str, float]:
+    """Memory per keyframe (float32 vector) and the time of one query (matrix product + top-10) over ``n``
+    random unit vectors: what the keyframe database costs at 10k keyframes."""
+    rng = np.random.default_rng(seed)
+    db = rng.normal(size=(n, dim)).astype(np.float32)
+    db /= np.linalg.norm(db, axis=1, keepdims=True)
+    q = db[rng.integers(n)]
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        s = db @ q
+        np.argpartition(-s, 10)[:10]
+    return {"keyframes": n, "bytes_per_keyframe": dim * 4, "query_ms": (time.perf_counter() - t0) * 1e3 / repeats}

@@ -1,0 +1,303 @@
+"""``vslam train place``: VLADNet trained with a triplet loss on places we hold (issue 7, "Training").
+
+Positives and negatives come from ground truth or from construction, never from labels someone drew:
+
+* synthetic looping routes (seeds ``synthetic_seeds``; lighting change on): same place = cameras within
+  ``pos_m`` and ``pos_deg``, different place = more than ``neg_m`` apart;
+* KITTI 07 frames (``kitti``; ground-truth poses): the same with ``kitti_pos_m`` / ``kitti_neg_m``;
+* COCO128 images (``coco``): a place is one image, its positive a second random perspective crop of it.
+
+Every image gets a random photometric change (gain, gamma, noise, blur) so that the same place under a
+different exposure stays close. Held out, never trained on: synthetic seed ``val_seed`` (the bench's loop
+route) and TUM fr3/teddy, where ``vslam bench`` measures recall against the BoW baseline.
+
+Per step: ``batch`` anchors, one positive each and ``negatives`` negatives, of which the hardest counts (a
+margin triplet loss on squared distances of unit vectors). NetVLAD clusters start at k-means centres of the
+(randomly initialised) backbone's features. Seeded; ``out/last.pt`` every ``ckpt_every`` steps (``resume``);
+``toy`` is a tiny CPU smoke run of the same recipe (tests).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PlaceTrainConfig:
+    out: str = "runs/train_place/vladnet"
+    weights: str = ""  # also copy the final weights here (e.g. models/vladnet_v1.pt)
+    synthetic_seeds: tuple[int, ...] = (11, 12, 13, 14, 15, 16)
+    synthetic_frames: int = 600
+    synthetic_stride: int = 3
+    synthetic_size: tuple[int, int] = (320, 240)
+    synthetic_speed: float = 1.4  # m/s: 600 frames at 30 Hz are 2+ laps of the room
+    val_seed: int = 0
+    pos_m: float = 0.5
+    pos_deg: float = 30.0
+    neg_m: float = 2.0
+    kitti: str = "kitti/sequences/07"  # under the data root; "" = none
+    kitti_pos_m: float = 3.0
+    kitti_neg_m: float = 20.0
+    coco: str = "coco128/images"  # under the data root; "" = none
+    tum_eval: str = "tum/rgbd_dataset_freiburg3_teddy"  # held-out real evaluation; "" = none
+    tum_pos_m: float = 0.3
+    tum_exclude_frames: int = 30
+    channels: tuple[int, ...] = (16, 32, 64, 96)
+    clusters: int = 16
+    out_dim: int = 256
+    input_size: tuple[int, int] = (160, 120)
+    steps: int = 1500
+    batch: int = 8
+    negatives: int = 4
+    margin: float = 0.1
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    mix: tuple[float, float, float] = (0.5, 0.25, 0.25)  # share of anchors from synthetic / KITTI / COCO
+    kmeans_images: int = 200
+    seed: int = 0
+    threads: int = 2
+    device: str = "auto"
+    ckpt_every: int = 100
+    log_every: int = 50
+    resume: bool = False
+    toy: bool = False
+
+
+def toy_config(cfg: PlaceTrainConfig) -> PlaceTrainConfig:
+    import dataclasses
+
+    return dataclasses.replace(cfg, synthetic_seeds=(11, 12), synthetic_frames=240, synthetic_stride=4, synthetic_speed=3.5,
+                               synthetic_size=(160, 120), kitti="", coco="", tum_eval="", steps=min(cfg.steps, 300), batch=4,
+                               negatives=2, kmeans_images=30, ckpt_every=10, log_every=10, clusters=8,
+                               channels=(8, 16, 24, 32), out_dim=64, input_size=(80, 60), neg_m=1.0)
+
+
+class _Pool:
+    """Images of one source with a positive / negative sampler."""
+
+    def __init__(self, name: str, images: list, pos: np.ndarray | None, neg: np.ndarray | None):
+        self.name, self.images, self.pos, self.neg = name, images, pos, neg
+        if pos is not None:
+            self.anchors = np.flatnonzero((pos & ~np.eye(len(images), dtype=bool)).any(axis=1) & neg.any(axis=1))
+        else:
+            self.anchors = np.arange(len(images))
+
+    def triplet(self, rng: np.random.Generator, n_neg: int) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+        a = int(rng.choice(self.anchors))
+        if self.pos is None:  # COCO: the positive is another view of the same image
+            negs = rng.choice(np.delete(np.arange(len(self.images)), a), n_neg, replace=False)
+            return _view(self.images[a], rng), _view(self.images[a], rng), [_view(self.images[int(k)], rng) for k in negs]
+        p = int(rng.choice(np.flatnonzero(self.pos[a] & (np.arange(len(self.images)) != a))))
+        negs = rng.choice(np.flatnonzero(self.neg[a]), n_neg, replace=True)
+        return self.images[a], self.images[p], [self.images[int(k)] for k in negs]
+
+
+def _view(im: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A random perspective crop (a different viewpoint of a planar scene) at 4:3."""
+    h, w = im.shape[:2]
+    cw, ch = min(w, int(h * 4 / 3)), min(h, int(w * 3 / 4))
+    s = rng.uniform(0.6, 0.9)
+    bw, bh = cw * s, ch * s
+    x0, y0 = rng.uniform(0, w - bw), rng.uniform(0, h - bh)
+    src = np.array([[x0, y0], [x0 + bw, y0], [x0 + bw, y0 + bh], [x0, y0 + bh]], np.float32)
+    src += rng.normal(0, 0.04 * bw, src.shape).astype(np.float32)
+    dst = np.array([[0, 0], [319, 0], [319, 239], [0, 239]], np.float32)
+    return cv2.warpPerspective(im, cv2.getPerspectiveTransform(src, dst), (320, 240), borderMode=cv2.BORDER_REFLECT)
+
+
+def photometric(im: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Gain, gamma, Gaussian noise and (sometimes) blur of a uint8 image."""
+    x = (cv2.cvtColor(im, cv2.COLOR_BGR2GRAY) if im.ndim == 3 else im).astype(np.float32) / 255.0
+    x = np.clip(x * rng.uniform(0.5, 1.5), 0, 1) ** rng.uniform(0.6, 1.6)
+    x = x + rng.normal(0, rng.uniform(0, 0.04), x.shape)
+    out = (np.clip(x, 0, 1) * 255).astype(np.uint8)
+    if rng.random() < 0.3:
+        out = cv2.GaussianBlur(out, (0, 0), rng.uniform(0.5, 1.5))
+    return out
+
+
+def _pools(cfg: PlaceTrainConfig, root: Path) -> list[_Pool]:
+    from vslam.loop.place_data import same_place, sequence_places, synthetic_route
+
+    pools = []
+    imgs, pos, neg = [], [], []
+    for s in cfg.synthetic_seeds:
+        imgs.append(synthetic_route(s, cfg.synthetic_frames, cfg.synthetic_size, cfg.synthetic_stride, speed=cfg.synthetic_speed))
+    if imgs:
+        # one pool per route: places of different routes are different rooms, but never compared
+        for r in imgs:  # a different place: far away, or the other way round (optical axes > 90 deg apart)
+            d = np.linalg.norm(r.positions[:, None] - r.positions[None], axis=2)
+            neg = (d > cfg.neg_m) | (r.axes @ r.axes.T < 0)
+            pools.append(_Pool(r.name, r.images, same_place(r, r, cfg.pos_m, cfg.pos_deg), neg))
+    if cfg.kitti and (root / cfg.kitti).exists():
+        k = sequence_places(root / cfg.kitti)
+        d = np.linalg.norm(k.positions[:, None] - k.positions[None], axis=2)
+        pools.append(_Pool("kitti", k.images, same_place(k, k, cfg.kitti_pos_m, cfg.pos_deg), d > cfg.kitti_neg_m))
+    elif cfg.kitti:
+        log.warning("KITTI frames not found at %s: trained without them", root / cfg.kitti)
+    if cfg.coco and (root / cfg.coco).exists():
+        files = sorted(p for p in (root / cfg.coco).rglob("*") if p.suffix.lower() in (".jpg", ".png"))
+        ims = [im for im in (cv2.imread(str(f)) for f in files) if im is not None]
+        pools.append(_Pool("coco", ims, None, None))
+    elif cfg.coco:
+        log.warning("COCO images not found at %s: trained without them", root / cfg.coco)
+    return pools
+
+
+def _kmeans(x, k: int, iters: int, gen):
+    import torch
+
+    c = x[torch.randperm(len(x), generator=gen)[:k]].clone()
+    for _ in range(iters):
+        a = torch.cdist(x, c).argmin(dim=1)
+        for j in range(k):
+            m = a == j
+            if m.any():
+                c[j] = x[m].mean(dim=0)
+    return torch.nn.functional.normalize(c, dim=1)
+
+
+def evaluate(model, cfg: PlaceTrainConfig, root: Path, with_bow: bool = False) -> dict:
+    """Held-out recall@1/5/10: synthetic seed ``val_seed`` (second half vs first) and TUM teddy (within)."""
+    from vslam.loop.place_data import halves, sequence_places, synthetic_route
+    from vslam.loop.retrieval import bow_describer, evaluate_retrieval
+    from vslam.loop.vladnet import VladNetDescriptor
+
+    desc = {"vladnet": VladNetDescriptor(model).describe_many}
+    if with_bow:
+        desc["bow"] = bow_describer()
+    r = synthetic_route(cfg.val_seed, cfg.synthetic_frames, cfg.synthetic_size, cfg.synthetic_stride, speed=cfg.synthetic_speed)
+    db, q = halves(r)
+    out = {"synthetic": evaluate_retrieval(desc, db, q, cfg.pos_m, cfg.pos_deg)}
+    if cfg.tum_eval and (root / cfg.tum_eval).exists():
+        t = sequence_places(root / cfg.tum_eval)
+        out["tum"] = evaluate_retrieval(desc, t, None, cfg.tum_pos_m, cfg.pos_deg, cfg.tum_exclude_frames)
+    return out
+
+
+def train(cfg: PlaceTrainConfig) -> dict:
+    import torch
+
+    from vslam.loop.vladnet import VladNet, VladNetConfig, preprocess, save_vladnet
+    from vslam.paths import data_root
+
+    if cfg.toy:
+        cfg = toy_config(cfg)
+    torch.manual_seed(cfg.seed)
+    torch.set_num_threads(max(1, cfg.threads))
+    dev = torch.device("cuda" if cfg.device in ("auto", "cuda") and torch.cuda.is_available() else "cpu")
+    rng = np.random.default_rng(cfg.seed)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    root = data_root()
+    t0 = time.perf_counter()
+    pools = _pools(cfg, root)
+    log.info("place pools: %s (%.1f s)", ", ".join(f"{p.name} {len(p.images)}" for p in pools), time.perf_counter() - t0)
+    model = VladNet(VladNetConfig(tuple(cfg.channels), cfg.clusters, cfg.out_dim, tuple(cfg.input_size))).to(dev)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=cfg.steps, pct_start=0.05)
+    step, history = 0, []
+    last = out / "last.pt"
+    if cfg.resume and last.exists():
+        ck = torch.load(last, map_location=dev, weights_only=False)
+        model.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["opt"])
+        sched.load_state_dict(ck["sched"])
+        step, history = int(ck["step"]), list(ck["history"])
+        rng.bit_generator.state = ck["rng"]
+        torch.set_rng_state(ck["torch_rng"])
+        log.info("resumed at step %d", step)
+    else:  # NetVLAD clusters from k-means on backbone features of random training images
+        gen = torch.Generator().manual_seed(cfg.seed)
+        pick = [(p, int(rng.integers(len(p.images)))) for p in (pools[int(rng.integers(len(pools)))] for _ in range(cfg.kmeans_images))]
+        with torch.no_grad():
+            model.eval()
+            f = model.features(preprocess([photometric(p.images[i], rng) for p, i in pick], cfg.input_size).to(dev))
+            f = torch.nn.functional.normalize(f, dim=1).permute(0, 2, 3, 1).reshape(-1, f.shape[1]).cpu()
+            f = f[torch.randperm(len(f), generator=gen)[:20000]]
+            model.vlad.init_clusters(_kmeans(f, cfg.clusters, 20, gen).to(dev))
+    eval_init = None
+    if step == 0:  # the same held-out recall before training (k-means clusters only): what training adds
+        eval_init = evaluate(model.eval(), cfg, root)
+    shares = np.array(cfg.mix, dtype=np.float64)
+    kinds = {"synthetic": [p for p in pools if p.name.startswith("synthetic")], "kitti": [p for p in pools if p.name == "kitti"],
+             "coco": [p for p in pools if p.name == "coco"]}
+    avail = np.array([bool(kinds[k]) for k in ("synthetic", "kitti", "coco")])
+    shares = shares * avail
+    shares /= shares.sum()
+    model.train()
+    t_train = time.perf_counter()
+    while step < cfg.steps:
+        imgs = []
+        for _ in range(cfg.batch):
+            kind = ("synthetic", "kitti", "coco")[int(rng.choice(3, p=shares))]
+            pool = kinds[kind][int(rng.integers(len(kinds[kind])))]
+            a, p, negs = pool.triplet(rng, cfg.negatives)
+            imgs += [a, p, *negs]
+        x = preprocess([photometric(im, rng) for im in imgs], cfg.input_size).to(dev)
+        d = model(x).view(cfg.batch, 2 + cfg.negatives, -1)
+        d_pos = (d[:, 0] - d[:, 1]).pow(2).sum(-1)
+        d_neg = (d[:, :1] - d[:, 2:]).pow(2).sum(-1).min(dim=1).values  # the hardest negative
+        loss = torch.relu(d_pos - d_neg + cfg.margin).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+        step += 1
+        history.append(loss.item())
+        if step % cfg.log_every == 0:
+            log.info("step %d/%d loss %.4f (%.2f s/step)", step, cfg.steps, float(np.mean(history[-cfg.log_every:])),
+                     (time.perf_counter() - t_train) / step)
+        if step % cfg.ckpt_every == 0 or step == cfg.steps:
+            torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(), "step": step,
+                        "history": history, "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state()}, last)
+    model.eval().cpu()
+    n_first = max(1, min(50, len(history) // 5))
+    metrics = {"config": asdict(cfg), "steps": step, "loss_first": float(np.mean(history[:n_first])),
+               "loss_last": float(np.mean(history[-n_first:])), "train_s": time.perf_counter() - t_train,
+               "parameters": int(sum(p.numel() for p in model.parameters())),
+               "pools": {p.name: len(p.images) for p in pools}, "device": str(dev)}
+    metrics["eval"] = evaluate(model, cfg, root, with_bow=not cfg.toy)
+    if eval_init is not None:
+        metrics["eval_init"] = eval_init
+    meta = {k: metrics[k] for k in ("steps", "loss_first", "loss_last", "train_s", "parameters", "pools", "device")}
+    save_vladnet(model, out / "model.pt", meta)
+    if cfg.weights:
+        save_vladnet(model, cfg.weights, meta)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
+    return metrics
+
+
+def add_cli(train_sub) -> None:
+    p = train_sub.add_parser("place", help="train the VLADNet place descriptor (synthetic routes + KITTI + COCO)")
+    p.add_argument("--config", "-c", help="YAML with PlaceTrainConfig fields")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a field, e.g. steps=3000")
+    p.add_argument("--out", "-o", help="output folder (last.pt, model.pt, metrics.json)")
+    p.add_argument("--toy", action="store_true", help="tiny CPU smoke run of the whole recipe")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    p.add_argument("--device", choices=["auto", "cpu", "cuda"])
+    p.set_defaults(fn=_cmd)
+
+
+def _cmd(args) -> int:
+    from vslam.config import load_config, parse_overrides
+
+    over = parse_overrides(args.set or [])
+    for key, val in (("out", args.out), ("device", args.device)):
+        if val is not None:
+            over[key] = val
+    if args.toy:
+        over["toy"] = True
+    if args.resume:
+        over["resume"] = True
+    print(json.dumps(train(load_config(PlaceTrainConfig, args.config, over))["eval"], indent=2))
+    return 0
