@@ -193,7 +193,9 @@ def _job_place(overrides: dict[str, Any]) -> dict[str, Any]:
     tum = data_root() / str(overrides.get("tum", "tum/rgbd_dataset_freiburg3_teddy"))
     if tum.exists():
         t = sequence_places(tum)
-        sets["TUM fr3/teddy, every frame vs the frames ≥ 30 apart (≤ 0.3 m, ≤ 30°)"] = evaluate_retrieval(desc, t, None, 0.3, 30.0, 30)
+        split = int(overrides.get("tum_split", 100))
+        sets[f"TUM fr3/teddy, frames ≥ {split} (not trained on) vs every frame ≥ 30 apart (≤ 0.3 m, ≤ 30°)"] = \
+            evaluate_retrieval(desc, t, t.subset(t.index >= split), 0.3, 30.0, 30)
     dims = {n: next(iter(sets.values()))[n]["dim"] for n in names}
     return {"sets": sets, "costs": {n: database_costs(d) for n, d in dims.items()}, "seconds": time.perf_counter() - t0,
             "peak_rss_mb": _peak_rss_mb()}

@@ -64,11 +64,12 @@ def recall_at(desc_db: np.ndarray, desc_q: np.ndarray, positives: np.ndarray, ks
 
 def evaluate_retrieval(describers: dict[str, Describer], db: PlaceSet, queries: PlaceSet | None, pos_m: float,
                        pos_deg: float, exclude_frames: int = 0, ks: tuple[int, ...] = (1, 5, 10)) -> dict[str, dict]:
-    """recall@k of each describer; ``queries`` None = the same set against itself with temporal exclusion."""
+    """recall@k of each describer; ``queries`` None = the set against itself. exclude_frames > 0: both come from
+    one sequence, and pairs closer than that many frames are never ranked (a frame never finds itself)."""
     q = db if queries is None else queries
     pos = same_place(q, db, pos_m, pos_deg)
     excl = None
-    if queries is None:
+    if queries is None or exclude_frames > 0:
         excl = np.abs(q.index[:, None] - db.index[None]) < max(exclude_frames, 1)
     out = {}
     for name, fn in describers.items():

@@ -5,11 +5,13 @@ Positives and negatives come from ground truth or from construction, never from 
 * synthetic looping routes (seeds ``synthetic_seeds``; lighting change on): same place = cameras within
   ``pos_m`` and ``pos_deg``, different place = more than ``neg_m`` apart;
 * KITTI 07 frames (``kitti``; ground-truth poses): the same with ``kitti_pos_m`` / ``kitti_neg_m``;
-* COCO128 images (``coco``): a place is one image, its positive a second random perspective crop of it.
+* COCO128 images (``coco``): a place is one image, its positive a second random perspective crop of it;
+* TUM fr3/teddy frames before ``tum_split`` (ground truth, ``tum_pos_m`` / ``tum_neg_m``).
 
 Every image gets a random photometric change (gain, gamma, noise, blur) so that the same place under a
 different exposure stays close. Held out, never trained on: synthetic seed ``val_seed`` (the bench's loop
-route) and TUM fr3/teddy, where ``vslam bench`` measures recall against the BoW baseline.
+route) and the TUM teddy frames from ``tum_split`` on (queries; the database is every frame), where
+``vslam bench`` measures recall against the BoW baseline.
 
 Per step: ``batch`` anchors, one positive each and ``negatives`` negatives, of which the hardest counts (a
 margin triplet loss on squared distances of unit vectors). NetVLAD clusters start at k-means centres of the
@@ -48,8 +50,12 @@ class PlaceTrainConfig:
     kitti_pos_m: float = 3.0
     kitti_neg_m: float = 20.0
     coco: str = "coco128/images"  # under the data root; "" = none
-    tum_eval: str = "tum/rgbd_dataset_freiburg3_teddy"  # held-out real evaluation; "" = none
+    # TUM teddy: frames before tum_split train (pairs among them), frames from tum_split on are the held-out
+    # queries, ranked against every frame >= tum_exclude_frames away in time; "" = none
+    tum: str = "tum/rgbd_dataset_freiburg3_teddy"
+    tum_split: int = 100
     tum_pos_m: float = 0.3
+    tum_neg_m: float = 1.0
     tum_exclude_frames: int = 30
     channels: tuple[int, ...] = (16, 32, 64, 96)
     clusters: int = 16
@@ -61,7 +67,7 @@ class PlaceTrainConfig:
     margin: float = 0.1
     lr: float = 1e-3
     weight_decay: float = 1e-4
-    mix: tuple[float, float, float] = (0.5, 0.25, 0.25)  # share of anchors from synthetic / KITTI / COCO
+    mix: tuple[float, ...] = (0.2, 0.15, 0.3, 0.35)  # share of anchors from synthetic / KITTI / COCO / TUM train split
     kmeans_images: int = 200
     seed: int = 0
     threads: int = 2
@@ -76,7 +82,7 @@ def toy_config(cfg: PlaceTrainConfig) -> PlaceTrainConfig:
     import dataclasses
 
     return dataclasses.replace(cfg, synthetic_seeds=(11, 12), synthetic_frames=240, synthetic_stride=4, synthetic_speed=3.5,
-                               synthetic_size=(160, 120), kitti="", coco="", tum_eval="", steps=min(cfg.steps, 300), batch=4,
+                               synthetic_size=(160, 120), kitti="", coco="", tum="", steps=min(cfg.steps, 300), batch=4,
                                negatives=2, kmeans_images=30, ckpt_every=10, log_every=10, clusters=8,
                                channels=(8, 16, 24, 32), out_dim=64, input_size=(80, 60), neg_m=1.0)
 
@@ -144,6 +150,14 @@ def _pools(cfg: PlaceTrainConfig, root: Path) -> list[_Pool]:
         pools.append(_Pool("kitti", k.images, same_place(k, k, cfg.kitti_pos_m, cfg.pos_deg), d > cfg.kitti_neg_m))
     elif cfg.kitti:
         log.warning("KITTI frames not found at %s: trained without them", root / cfg.kitti)
+    if cfg.tum and (root / cfg.tum).exists():
+        t = sequence_places(root / cfg.tum)
+        t = t.subset(t.index < cfg.tum_split)
+        d = np.linalg.norm(t.positions[:, None] - t.positions[None], axis=2)
+        neg = (d > cfg.tum_neg_m) | (t.axes @ t.axes.T < 0)
+        pools.append(_Pool("tum", t.images, same_place(t, t, cfg.tum_pos_m, cfg.pos_deg), neg))
+    elif cfg.tum:
+        log.warning("TUM frames not found at %s: trained without them", root / cfg.tum)
     if cfg.coco and (root / cfg.coco).exists():
         files = sorted(p for p in (root / cfg.coco).rglob("*") if p.suffix.lower() in (".jpg", ".png"))
         ims = [im for im in (cv2.imread(str(f)) for f in files) if im is not None]
@@ -178,9 +192,10 @@ def evaluate(model, cfg: PlaceTrainConfig, root: Path, with_bow: bool = False) -
     r = synthetic_route(cfg.val_seed, cfg.synthetic_frames, cfg.synthetic_size, cfg.synthetic_stride, speed=cfg.synthetic_speed)
     db, q = halves(r)
     out = {"synthetic": evaluate_retrieval(desc, db, q, cfg.pos_m, cfg.pos_deg)}
-    if cfg.tum_eval and (root / cfg.tum_eval).exists():
-        t = sequence_places(root / cfg.tum_eval)
-        out["tum"] = evaluate_retrieval(desc, t, None, cfg.tum_pos_m, cfg.pos_deg, cfg.tum_exclude_frames)
+    if cfg.tum and (root / cfg.tum).exists():
+        t = sequence_places(root / cfg.tum)
+        out["tum"] = evaluate_retrieval(desc, t, t.subset(t.index >= cfg.tum_split), cfg.tum_pos_m, cfg.pos_deg,
+                                        cfg.tum_exclude_frames)
     return out
 
 
@@ -229,9 +244,9 @@ def train(cfg: PlaceTrainConfig) -> dict:
     if step == 0:  # the same held-out recall before training (k-means clusters only): what training adds
         eval_init = evaluate(model.eval(), cfg, root)
     shares = np.array(cfg.mix, dtype=np.float64)
-    kinds = {"synthetic": [p for p in pools if p.name.startswith("synthetic")], "kitti": [p for p in pools if p.name == "kitti"],
-             "coco": [p for p in pools if p.name == "coco"]}
-    avail = np.array([bool(kinds[k]) for k in ("synthetic", "kitti", "coco")])
+    names = ("synthetic", "kitti", "coco", "tum")
+    kinds = {k: [p for p in pools if p.name.startswith(k)] for k in names}
+    avail = np.array([bool(kinds[k]) for k in names])
     shares = shares * avail
     shares /= shares.sum()
     model.train()
@@ -239,7 +254,7 @@ def train(cfg: PlaceTrainConfig) -> dict:
     while step < cfg.steps:
         imgs = []
         for _ in range(cfg.batch):
-            kind = ("synthetic", "kitti", "coco")[int(rng.choice(3, p=shares))]
+            kind = names[int(rng.choice(len(names), p=shares))]
             pool = kinds[kind][int(rng.integers(len(kinds[kind])))]
             a, p, negs = pool.triplet(rng, cfg.negatives)
             imgs += [a, p, *negs]
