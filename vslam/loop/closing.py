@@ -16,8 +16,12 @@ Per new keyframe (``LoopCloser.add_keyframe``):
    every accepted loop edge so far), first keyframe fixed; every map point
    moves with its reference keyframe; the loop side's points are fused into
    the query keyframe and its neighbours (duplicates merged), then a local BA.
-   Monocular loops are verified and counted but not corrected: their drift is
-   a Sim3 and the pose graph here is SE3 (``vslam.backend.pose_graph``).
+   Monocular (``mono_sim3``): the drift includes scale, so the loop is a
+   similarity -- the verified pose (PnP on the old side's points) plus the
+   scale from the median depth ratio of the same keypoints' points on the two
+   sides -- and the graph is ORB-SLAM's Sim3 essential graph
+   (``optimize_sim3_graph``); points follow their keyframe's similarity, the
+   frames' relative poses their keyframe's scale (``FrameLog.scale_refs``).
 
 Relocalisation (``relocalise``) ranks keyframes by the same descriptor and
 tries the tracker's keyframe matching on the best few.
@@ -35,10 +39,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from vslam.backend.ba import BackendConfig, BAProblem, StereoCamera, local_bundle_adjustment
-from vslam.backend.pose_graph import PoseEdge, optimize_pose_graph
+from vslam.backend.pose_graph import PoseEdge, SimEdge, optimize_pose_graph, optimize_sim3_graph, sim_matrix, sim_parts
 from vslam.data.types import PinholeCamera, SensorKind
 from vslam.features.base import Features
-from vslam.geometry.se3 import inv_T
+from vslam.geometry.se3 import inv_T, make_T
 from vslam.loop.config import LoopConfig
 from vslam.loop.database import KeyframeDatabase
 from vslam.loop.descriptor import PlaceDescriptor, make_place_descriptor
@@ -69,6 +73,9 @@ class LoopCloser:
         self.db = KeyframeDatabase(self.descriptor.dim)
         self.verifier = LoopVerifier(cam, stereo_cam, cfg, backend)
         self.loop_edges: list[PoseEdge] = []
+        self.sim_loop_edges: list[SimEdge] = []  # monocular loops (Sim3)
+        self.frames = None  # the tracker's FrameLog: frames take their keyframe's scale after a Sim3 loop
+        self.last_scale = 1.0  # scale the query keyframe took in the last correction (the tracker's velocity follows)
         self.stats = LoopStats()
         self._groups: list[tuple[set[int], int]] = []  # consistent candidate groups of the previous keyframe
 
@@ -113,6 +120,13 @@ class LoopCloser:
             if self.sensor != "mono":
                 self.correct(kf, match)
                 self.stats.corrected += 1
+            elif self.cfg.mono_sim3:
+                scale = self.loop_scale(kf, match)
+                if scale is None:
+                    log.info("loop kf %d -> %d: too few points on both sides for its scale; not corrected", kf.id, c)
+                else:
+                    self.correct_sim3(kf, match, scale)
+                    self.stats.corrected += 1
             self._groups = []  # the next keyframes see the same place: no second loop on the same evidence
             return match
         return None
@@ -152,6 +166,55 @@ class LoopCloser:
             ref = mp.first_kf if mp.first_kf in m.keyframes else min(mp.observations)
             D = after[ref] @ inv_T(before[ref])
             mp.xyz = D[:3, :3] @ mp.xyz + D[:3, 3]
+        self.fuse(kf, match)
+
+    def loop_scale(self, kf: KeyFrame, match: LoopMatch) -> float | None:
+        """Monocular: length in the old (candidate-side) map per length in the query's drifted map -- the median
+        ratio of the depths, in the query camera, of the same keypoints' two points: the old-side point in the
+        verified pose, the query's own point in its tracked pose. None when fewer than ``sim3_min_points``."""
+        m = self.map
+        kp = np.flatnonzero((match.point_ids >= 0) & (kf.point_ids >= 0) & (match.point_ids != kf.point_ids))
+        kp = np.array([k for k in kp if int(kf.point_ids[k]) in m.points and int(match.point_ids[k]) in m.points], np.int64)
+        if len(kp) < self.cfg.sim3_min_points:
+            return None
+        Tq, Tc = inv_T(kf.T_world_cam), inv_T(match.T_world_cam)
+        zq = (m.points_xyz(kf.point_ids[kp]) @ Tq[:3, :3].T + Tq[:3, 3])[:, 2]
+        zc = (m.points_xyz(match.point_ids[kp]) @ Tc[:3, :3].T + Tc[:3, 3])[:, 2]
+        good = (zq > 0) & (zc > 0)
+        if int(good.sum()) < self.cfg.sim3_min_points:
+            return None
+        return float(np.median(zc[good] / zq[good]))
+
+    def correct_sim3(self, kf: KeyFrame, match: LoopMatch, scale: float) -> None:
+        """Monocular loop: Sim3 essential graph, points and frames follow their keyframes (module doc)."""
+        m = self.map
+        before = {k: f.T_world_cam.copy() for k, f in m.keyframes.items()}
+        S0 = {k: sim_matrix(T) for k, T in before.items()}
+        # the query side's world -> the old side's: X_old = S_corr X_query
+        S_corr = sim_matrix(match.T_world_cam, scale) @ np.linalg.inv(S0[kf.id])
+        guess = dict(S0)
+        group = [kf.id, *m.covisible_keyframes(kf.id, self.cfg.group_min_shared, self.cfg.fuse_neighbors)]
+        for k in group:
+            guess[k] = S_corr @ S0[k]
+        edges = [SimEdge(e.i, e.j, sim_matrix(e.T_i_j)) for e in self.pose_graph_edges(before)]
+        c = match.candidate
+        new = [SimEdge(c, k, np.linalg.inv(S0[c]) @ guess[k], loop=True) for k in group]
+        after, e0, e1 = optimize_sim3_graph(guess, edges + self.sim_loop_edges + new, {min(m.keyframes)},
+                                            self.cfg.pose_graph, self.cfg.sim3_sigma_scale)
+        self.sim_loop_edges.extend(new)
+        log.info("Sim3 loop kf %d -> %d: scale %.3f, graph error %.3g -> %.3g", kf.id, c, scale, e0, e1)
+        scales = {}
+        for k, S in after.items():
+            R, t, sk = sim_parts(S)
+            m.keyframes[k].T_world_cam = make_T(R, t)
+            scales[k] = sk
+        for mp in m.points.values():  # a point follows its reference keyframe's similarity
+            ref = mp.first_kf if mp.first_kf in m.keyframes else min(mp.observations)
+            D = after[ref] @ np.linalg.inv(S0[ref])
+            mp.xyz = D[:3, :3] @ mp.xyz + D[:3, 3]
+        if self.frames is not None:
+            self.frames.scale_refs(scales)
+        self.last_scale = scales[kf.id]
         self.fuse(kf, match)
 
     def fuse(self, kf: KeyFrame, match: LoopMatch) -> None:

@@ -46,6 +46,10 @@ class LoopConfig:
     # before this rule)
     global_ba_min_obs: int = 20
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
+    # monocular loops are corrected as similarities (Sim3 essential graph); False: detected and verified only
+    mono_sim3: bool = True
+    sim3_min_points: int = 20  # keypoints with a point on both sides needed to measure the loop's scale
+    sim3_sigma_scale: float = 0.01  # per-edge std of log-scale in the Sim3 graph
     # -- relocalisation after tracking loss --
     relocalise: bool = True
     reloc_top_k: int = 5

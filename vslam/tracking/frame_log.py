@@ -45,6 +45,15 @@ class FrameLog:
             self._rec[k] = (ref, Q if ref is not None else T @ Q)
         self.moved = True
 
+    def scale_refs(self, scales: dict[int, float]) -> None:
+        """A monocular (Sim3) loop gave keyframe k the scale ``scales[k]``: its frames' relative translations take it."""
+        for k, (ref, P) in self._rec.items():
+            if ref is not None and ref in scales and scales[ref] != 1.0:
+                Q = P.copy()
+                Q[:3, 3] *= scales[ref]
+                self._rec[k] = (ref, Q)
+        self.moved = True
+
     def poses(self, frame_indices: list[int]) -> np.ndarray:
         """(F,4,4) T_world_cam of ``frame_indices`` through their reference keyframes' current poses."""
         out = []

@@ -98,6 +98,7 @@ class SlamTracker:
             from vslam.loop.closing import LoopCloser, attach_saved_map
 
             self.loop = LoopCloser(self.map, self.cam, self.stereo_cam, sensor, cfg.loop, cfg.backend, self.mapper)
+            self.loop.frames = self.frames
             if cfg.load_map:  # the saved map replaces the empty one everywhere it is referenced
                 attach_saved_map(self, cfg.load_map)
         self.T_world_cam = np.eye(4)
@@ -192,6 +193,10 @@ class SlamTracker:
                     t_loop = time.perf_counter()
                     self.loop.add_keyframe(kf, frame.image)
                     ms_map["loop"] = (time.perf_counter() - t_loop) * 1e3
+                    if self.loop.last_scale != 1.0:  # a monocular loop rescaled this part of the map
+                        self.velocity = self.velocity.copy()
+                        self.velocity[:3, 3] *= self.loop.last_scale
+                        self.loop.last_scale = 1.0
                 self.ref_kf, self.last_kf_frame = kf.id, self._n_frames
                 # local BA moved the keyframe: the frame's pose follows it
                 self.T_world_cam = kf.T_world_cam.copy()
