@@ -21,7 +21,6 @@ import contextlib
 import json
 import logging
 import math
-import os
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -29,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from vslam import ddp
 from vslam.dynamic.data import Sample, collate, load_yolo, place, synthetic_samples
 from vslam.dynamic.detector import postprocess, save_checkpoint
 from vslam.dynamic.loss import detection_loss
@@ -140,43 +140,17 @@ def evaluate(model: YoloDetector, data: list[Sample], cfg: TrainConfig, dev: tor
     return rep
 
 
-def world() -> tuple[int, int, int]:
-    """(rank, world size, local rank) from torchrun's RANK / WORLD_SIZE / LOCAL_RANK; (0, 1, 0) without it."""
-    env = os.environ
-    return int(env.get("RANK", 0)), int(env.get("WORLD_SIZE", 1)), int(env.get("LOCAL_RANK", 0))
-
-
 def train(cfg: TrainConfig) -> dict[str, dict[str, float]]:
     """Run (or resume) training; returns the held-out metrics per set ({} on ranks other than 0)."""
     cfg = resolve(cfg)
     dev = torch.device("cuda" if cfg.device == "cuda" or (cfg.device == "auto" and torch.cuda.is_available()) else "cpu")
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
-    rank, n_ranks, local = world()
-    if n_ranks > 1:
-        import torch.distributed as dist
-
-        if dev.type == "cuda":
-            dev = torch.device("cuda", local)
-            torch.cuda.set_device(dev)
-        dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
+    rank, n_ranks, dev = ddp.start(dev)
     try:
         return _train(cfg, dev, rank, n_ranks)
     finally:
-        if n_ranks > 1:
-            torch.distributed.destroy_process_group()
-
-
-def _check_in_sync(model: torch.nn.Module) -> None:
-    """Every rank must end with the same weights (DDP broadcasts them once and averages every gradient):
-    a checksum gathered from all ranks, RuntimeError if one differs."""
-    import torch.distributed as dist
-
-    v = torch.stack([p.detach().double().sum() for p in model.parameters()]).sum().reshape(1)
-    every = [torch.zeros_like(v) for _ in range(dist.get_world_size())]
-    dist.all_gather(every, v)
-    if any(not torch.equal(x, every[0]) for x in every):
-        raise RuntimeError(f"DDP ranks ended with different weights (checksums {[float(x) for x in every]})")
+        ddp.stop(n_ranks)
 
 
 def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict[str, dict[str, float]]:
@@ -184,9 +158,7 @@ def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)  # weight initialisation
     model = YoloDetector(DetectorConfig(cfg.scale, cfg.attention, len(cfg.classes), width=cfg.width)).to(dev)
-    net = model  # what the forward pass goes through: the DDP wrapper when several ranks train
-    if n_ranks > 1:
-        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[dev.index] if dev.type == "cuda" else None)
+    net = ddp.wrap(model, dev, n_ranks)  # what the forward pass goes through
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     start = 0
     if cfg.resume and (out / "last.pt").is_file():
@@ -225,7 +197,7 @@ def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict
                 save_checkpoint(out / "last.pt", model, list(cfg.classes), optimizer=opt.state_dict(),
                                 iteration=it + 1, train=asdict(cfg))
     if n_ranks > 1:
-        _check_in_sync(model)
+        ddp.check_in_sync(model)
     if not lead:
         return {}
     recalibrate_bn(model, [_batch(train_set, cfg, 10_000_000 + k, dev)[0] for k in range(cfg.bn_batches)])

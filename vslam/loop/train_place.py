@@ -16,7 +16,9 @@ route) and the TUM teddy frames from ``tum_split`` on (queries; the database is 
 Per step: ``batch`` anchors, one positive each and ``negatives`` negatives, of which the hardest counts (a
 margin triplet loss on squared distances of unit vectors). NetVLAD clusters start at k-means centres of the
 (randomly initialised) backbone's features. Seeded; ``out/last.pt`` every ``ckpt_every`` steps (``resume``);
-``toy`` is a tiny CPU smoke run of the same recipe (tests).
+``toy`` is a tiny CPU smoke run of the same recipe (tests). Several GPUs or CPU processes:
+``torchrun --nproc_per_node=N -m vslam.cli train place ...`` (``vslam.ddp``: each rank draws its own triplets,
+gradients are averaged, rank 0 writes); without torchrun nothing changes.
 """
 
 from __future__ import annotations
@@ -200,17 +202,32 @@ def evaluate(model, cfg: PlaceTrainConfig, root: Path, with_bow: bool = False) -
 
 
 def train(cfg: PlaceTrainConfig) -> dict:
+    """Run (or resume) training -> metrics ({} on DDP ranks other than 0; ``vslam.ddp``)."""
     import torch
 
-    from vslam.loop.vladnet import VladNet, VladNetConfig, preprocess, save_vladnet
-    from vslam.paths import data_root
+    from vslam import ddp
 
     if cfg.toy:
         cfg = toy_config(cfg)
-    torch.manual_seed(cfg.seed)
     torch.set_num_threads(max(1, cfg.threads))
     dev = torch.device("cuda" if cfg.device in ("auto", "cuda") and torch.cuda.is_available() else "cpu")
+    rank, n_ranks, dev = ddp.start(dev)
+    try:
+        return _train(cfg, dev, rank, n_ranks)
+    finally:
+        ddp.stop(n_ranks)
+
+
+def _train(cfg: PlaceTrainConfig, dev, rank: int, n_ranks: int) -> dict:
+    import torch
+
+    from vslam import ddp
+    from vslam.loop.vladnet import VladNet, VladNetConfig, preprocess, save_vladnet
+    from vslam.paths import data_root
+
+    torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
+    lead = rank == 0  # the one rank that writes and evaluates
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     root = data_root()
@@ -219,7 +236,7 @@ def train(cfg: PlaceTrainConfig) -> dict:
     log.info("place pools: %s (%.1f s)", ", ".join(f"{p.name} {len(p.images)}" for p in pools), time.perf_counter() - t0)
     model = VladNet(VladNetConfig(tuple(cfg.channels), cfg.clusters, cfg.out_dim, tuple(cfg.input_size))).to(dev)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=cfg.steps, pct_start=0.05)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=cfg.steps, pct_start=max(0.05, 3 / cfg.steps))
     step, history = 0, []
     last = out / "last.pt"
     if cfg.resume and last.exists():
@@ -241,8 +258,11 @@ def train(cfg: PlaceTrainConfig) -> dict:
             f = f[torch.randperm(len(f), generator=gen)[:20000]]
             model.vlad.init_clusters(_kmeans(f, cfg.clusters, 20, gen).to(dev))
     eval_init = None
-    if step == 0:  # the same held-out recall before training (k-means clusters only): what training adds
+    if step == 0 and lead:  # the same held-out recall before training (k-means clusters only): what training adds
         eval_init = evaluate(model.eval(), cfg, root)
+    net = ddp.wrap(model, dev, n_ranks)  # DDP broadcasts rank 0's (identical) start here
+    if n_ranks > 1:  # each rank draws its own triplets: the global batch is n_ranks x batch
+        rng = np.random.default_rng([cfg.seed, rank, step])
     shares = np.array(cfg.mix, dtype=np.float64)
     names = ("synthetic", "kitti", "coco", "tum")
     kinds = {k: [p for p in pools if p.name.startswith(k)] for k in names}
@@ -259,22 +279,28 @@ def train(cfg: PlaceTrainConfig) -> dict:
             a, p, negs = pool.triplet(rng, cfg.negatives)
             imgs += [a, p, *negs]
         x = preprocess([photometric(im, rng) for im in imgs], cfg.input_size).to(dev)
-        d = model(x).view(cfg.batch, 2 + cfg.negatives, -1)
+        d = net(x).view(cfg.batch, 2 + cfg.negatives, -1)
         d_pos = (d[:, 0] - d[:, 1]).pow(2).sum(-1)
         d_neg = (d[:, :1] - d[:, 2:]).pow(2).sum(-1).min(dim=1).values  # the hardest negative
         loss = torch.relu(d_pos - d_neg + cfg.margin).mean()
         opt.zero_grad()
-        loss.backward()
+        loss.backward()  # DDP: gradients averaged over the ranks here
         opt.step()
         sched.step()
         step += 1
         history.append(loss.item())
+        if not lead:
+            continue
         if step % cfg.log_every == 0:
             log.info("step %d/%d loss %.4f (%.2f s/step)", step, cfg.steps, float(np.mean(history[-cfg.log_every:])),
                      (time.perf_counter() - t_train) / step)
         if step % cfg.ckpt_every == 0 or step == cfg.steps:
             torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(), "step": step,
                         "history": history, "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state()}, last)
+    if n_ranks > 1:
+        ddp.check_in_sync(model)
+    if not lead:
+        return {}
     model.eval().cpu()
     n_first = max(1, min(50, len(history) // 5))
     metrics = {"config": asdict(cfg), "steps": step, "loss_first": float(np.mean(history[:n_first])),
