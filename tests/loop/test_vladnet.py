@@ -57,8 +57,12 @@ def test_save_load_round_trip_and_bad_files(tmp_path) -> None:
     with pytest.raises(ConfigError, match="not found"):
         load_vladnet(tmp_path / "missing.pt")
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
-    with pytest.raises(Exception):
+    with pytest.raises(ConfigError, match="junk.pt: not a VLADNet checkpoint"):
         load_vladnet(tmp_path / "junk.pt")
+    from vslam.loop.train_place import PlaceTrainConfig
+
+    with pytest.raises(ConfigError, match="mix must be 4 shares"):
+        PlaceTrainConfig(mix=(0.5, 0.5))
 
 
 def test_recall_at_counts_only_queries_with_a_positive() -> None:

@@ -79,6 +79,14 @@ class PlaceTrainConfig:
     resume: bool = False
     toy: bool = False
 
+    def __post_init__(self) -> None:
+        from vslam.errors import ConfigError
+
+        if len(self.mix) != 4 or min(self.mix) < 0 or sum(self.mix) <= 0:
+            raise ConfigError(f"train place: mix must be 4 shares >= 0 (synthetic, KITTI, COCO, TUM), got {list(self.mix)}")
+        if self.steps < 1 or self.batch < 1 or self.negatives < 1:
+            raise ConfigError("train place: steps, batch and negatives must be >= 1")
+
 
 def toy_config(cfg: PlaceTrainConfig) -> PlaceTrainConfig:
     import dataclasses

@@ -116,8 +116,8 @@ def load_vladnet(path: str | Path) -> VladNet:
         model = VladNet(VladNetConfig(tuple(c["channels"]), int(c["clusters"]), int(c["out_dim"]),
                                       tuple(c["input_size"]), float(c["alpha"])))
         model.load_state_dict(ck["state_dict"])
-    except (KeyError, RuntimeError, ValueError) as e:
-        raise ConfigError(f"{p}: not a VLADNet checkpoint ({e})") from None
+    except Exception as e:  # a damaged or foreign file: one line naming it, not torch's traceback
+        raise ConfigError(f"{p}: not a VLADNet checkpoint ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
     return model.eval()
 
 
