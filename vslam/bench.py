@@ -177,25 +177,18 @@ def _job_imu_preint(overrides: dict[str, Any]) -> dict[str, Any]:
 def _job_place(overrides: dict[str, Any]) -> dict[str, Any]:
     """Issue 7: recall@1/5/10 of the place descriptors (``set``: descriptors=[bow, vladnet], weights=<file>,
     seed=<held-out synthetic route>, tum=<folder under $VSLAM_DATA>) and the keyframe database's cost at 10k."""
-    from vslam.loop.place_data import halves, sequence_places, synthetic_route
-    from vslam.loop.retrieval import bow_describer, database_costs, evaluate_retrieval, vladnet_describer
     from vslam.loop.descriptor import default_vladnet_path
+    from vslam.loop.retrieval import bow_describer, database_costs, evaluate_held_out, held_out_sets, vladnet_describer
     from vslam.paths import data_root
 
     t0 = time.perf_counter()
     names = [str(n) for n in overrides.get("descriptors", ("bow", "vladnet"))]
     make = {"bow": bow_describer, "vladnet": lambda: vladnet_describer(str(overrides.get("weights") or default_vladnet_path()))}
     desc = {n: make[n]() for n in names}
-    route = synthetic_route(int(overrides.get("seed", 0)), int(overrides.get("frames", 600)), stride=int(overrides.get("stride", 3)))
-    db, q = halves(route)
-    sets = {f"synthetic room seed {int(overrides.get('seed', 0))}, 2 laps, lighting change: lap 2 vs lap 1 (≤ 0.5 m, ≤ 30°)":
-            evaluate_retrieval(desc, db, q, 0.5, 30.0)}
-    tum = data_root() / str(overrides.get("tum", "tum/rgbd_dataset_freiburg3_teddy"))
-    if tum.exists():
-        t = sequence_places(tum)
-        split = int(overrides.get("tum_split", 100))
-        sets[f"TUM fr3/teddy, frames ≥ {split} (not trained on) vs every frame ≥ 30 apart (≤ 0.3 m, ≤ 30°)"] = \
-            evaluate_retrieval(desc, t, t.subset(t.index >= split), 0.3, 30.0, 30)
+    held = held_out_sets(int(overrides.get("seed", 0)), int(overrides.get("frames", 600)), stride=int(overrides.get("stride", 3)),
+                         tum=data_root() / str(overrides.get("tum", "tum/rgbd_dataset_freiburg3_teddy")),
+                         tum_split=int(overrides.get("tum_split", 100)))
+    sets = {held[k].label: r for k, r in evaluate_held_out(desc, held).items()}
     dims = {n: next(iter(sets.values()))[n]["dim"] for n in names}
     return {"sets": sets, "costs": {n: database_costs(d) for n, d in dims.items()}, "seconds": time.perf_counter() - t0,
             "peak_rss_mb": _peak_rss_mb()}

@@ -56,6 +56,36 @@ class PoseGraphConfig:
     max_iterations: int = 50
 
 
+def _optimize(init: dict[int, np.ndarray], edges: list[tuple[int, int, np.ndarray]], fixed: set[int],
+              cfg: PoseGraphConfig, sigmas: np.ndarray, to_gtsam, from_gtsam, between, prior, at
+              ) -> tuple[dict[int, np.ndarray], float, float]:
+    """The graph both pose graphs share: ``between`` factors on (i, j, measurement) edges between ids of ``init``,
+    the ``fixed`` ids (else the lowest) held by a tight ``prior``, LM; fixed and unconnected ids come back as given.
+    to_gtsam / from_gtsam / at: the variable type's conversions and ``Values`` accessor."""
+    graph = gtsam.NonlinearFactorGraph()
+    noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+    if cfg.cauchy_k > 0:
+        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.cauchy_k), noise)
+    used: set[int] = set()
+    for i, j, M in edges:
+        if i in init and j in init and i != j:
+            graph.add(between(fx.X(i), fx.X(j), to_gtsam(M), noise))
+            used.update((i, j))
+    anchors = sorted(fixed & set(init)) or [min(init)]
+    used.update(anchors)
+    hold = gtsam.noiseModel.Isotropic.Sigma(len(sigmas), 1e-6)
+    for k in anchors:
+        graph.add(prior(fx.X(k), to_gtsam(init[k]), hold))
+    values = gtsam.Values()
+    for k, M in init.items():
+        if k in used:  # a keyframe without edges has nothing to move it (and would make LM singular)
+            values.insert(fx.X(k), to_gtsam(M))
+    est = gtsam.LevenbergMarquardtOptimizer(graph, values, fx.lm_params(cfg.max_iterations)).optimize()
+    out = {k: (from_gtsam(at(est, fx.X(k))) if k in used and k not in anchors else np.array(M, dtype=np.float64))
+           for k, M in init.items()}
+    return out, float(graph.error(values)), float(graph.error(est))
+
+
 def optimize_pose_graph(poses: dict[int, np.ndarray], edges: list[PoseEdge], fixed: set[int],
                         cfg: PoseGraphConfig = PoseGraphConfig()) -> tuple[dict[int, np.ndarray], float, float]:
     """-> (optimised T_world_cam per keyframe id, initial error, final error).
@@ -63,30 +93,9 @@ def optimize_pose_graph(poses: dict[int, np.ndarray], edges: list[PoseEdge], fix
     poses: initial guesses (4,4); edges between ids of ``poses`` (others are ignored); fixed: ids held.
     Fixed keyframes come back bit-identical; with no fixed id the lowest id anchors the gauge.
     """
-    graph = gtsam.NonlinearFactorGraph()
     sig = np.r_[np.full(3, cfg.sigma_rot), np.full(3, cfg.sigma_trans)]  # GTSAM Pose3 tangent: rotation first
-    noise = gtsam.noiseModel.Diagonal.Sigmas(sig)
-    if cfg.cauchy_k > 0:
-        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.cauchy_k), noise)
-    used: set[int] = set()
-    for e in edges:
-        if e.i in poses and e.j in poses and e.i != e.j:
-            graph.add(gtsam.BetweenFactorPose3(fx.X(e.i), fx.X(e.j), fx.pose3(e.T_i_j), noise))
-            used.update((e.i, e.j))
-    anchors = sorted(fixed & set(poses)) or [min(poses)]
-    used.update(anchors)
-    hold = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
-    for k in anchors:
-        graph.add(gtsam.PriorFactorPose3(fx.X(k), fx.pose3(poses[k]), hold))
-    values = gtsam.Values()
-    for k, T in poses.items():
-        if k in used:  # a keyframe without edges has nothing to move it (and would make LM singular)
-            values.insert(fx.X(k), fx.pose3(T))
-    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, fx.lm_params(cfg.max_iterations))
-    est = opt.optimize()
-    out = {k: (fx.pose_matrix(est.atPose3(fx.X(k))) if k in used and k not in anchors else np.array(poses[k], dtype=np.float64))
-           for k in poses}
-    return out, float(graph.error(values)), float(graph.error(est))
+    return _optimize(poses, [(e.i, e.j, e.T_i_j) for e in edges], fixed, cfg, sig, fx.pose3, fx.pose_matrix,
+                     gtsam.BetweenFactorPose3, gtsam.PriorFactorPose3, gtsam.Values.atPose3)
 
 
 @dataclass(frozen=True)
@@ -133,24 +142,7 @@ def optimize_sim3_graph(sims: dict[int, np.ndarray], edges: list[SimEdge], fixed
     sims: initial S_world_cam per keyframe (rigid poses are similarities of scale 1); edges as SimEdge;
     fixed: ids held (the lowest id when empty). sigma_scale: per-edge std of log-scale.
     """
-    graph = gtsam.NonlinearFactorGraph()
     # Similarity3 tangent: rotation (3), translation (3), log-scale (1)
-    noise = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, cfg.sigma_rot), np.full(3, cfg.sigma_trans), sigma_scale])
-    used: set[int] = set()
-    for e in edges:
-        if e.i in sims and e.j in sims and e.i != e.j:
-            graph.add(gtsam.BetweenFactorSimilarity3(fx.X(e.i), fx.X(e.j), _to_gtsam(e.S_i_j), noise))
-            used.update((e.i, e.j))
-    anchors = sorted(fixed & set(sims)) or [min(sims)]
-    used.update(anchors)
-    hold = gtsam.noiseModel.Isotropic.Sigma(7, 1e-6)
-    for k in anchors:
-        graph.add(gtsam.PriorFactorSimilarity3(fx.X(k), _to_gtsam(sims[k]), hold))
-    values = gtsam.Values()
-    for k, S in sims.items():
-        if k in used:
-            values.insert(fx.X(k), _to_gtsam(S))
-    est = gtsam.LevenbergMarquardtOptimizer(graph, values, fx.lm_params(cfg.max_iterations)).optimize()
-    out = {k: (_from_gtsam(est.atSimilarity3(fx.X(k))) if k in used and k not in anchors else np.array(sims[k], dtype=np.float64))
-           for k in sims}
-    return out, float(graph.error(values)), float(graph.error(est))
+    sig = np.r_[np.full(3, cfg.sigma_rot), np.full(3, cfg.sigma_trans), sigma_scale]
+    return _optimize(sims, [(e.i, e.j, e.S_i_j) for e in edges], fixed, cfg, sig, _to_gtsam, _from_gtsam,
+                     gtsam.BetweenFactorSimilarity3, gtsam.PriorFactorSimilarity3, gtsam.Values.atSimilarity3)

@@ -71,6 +71,15 @@ def _block_nees(e: np.ndarray, C: np.ndarray) -> float:
     return float(e @ np.linalg.solve(C, e))
 
 
+def _windows(imu: ImuSamples, t: np.ndarray, length_s: float, stride_s: float | None = None) -> list[tuple[int, int]]:
+    """(start, end) indices into the ground-truth times ``t`` of windows ``length_s`` long, starting every
+    ``stride_s`` (default: back to back), that the IMU covers."""
+    period = float(np.median(np.diff(t)))
+    steps = max(1, int(round(length_s / period)))
+    stride = max(1, int(round((stride_s or length_s) / period)))
+    return [(i, i + steps) for i in range(0, len(t) - steps, stride) if t[i] >= imu.t[0] and t[i + steps] <= imu.t[-1]]
+
+
 def window_errors(
     imu: ImuSamples,
     t: np.ndarray,
@@ -91,14 +100,8 @@ def window_errors(
     Windows the IMU does not cover are skipped.
     """
     params = make_params(noise, gravity)
-    period = float(np.median(np.diff(t)))
-    steps = max(1, int(round(length_s / period)))
-    stride = max(1, int(round((stride_s or length_s) / period)))
     rows = []
-    for i in range(0, len(t) - steps, stride):
-        j = i + steps
-        if t[i] < imu.t[0] or t[j] > imu.t[-1]:
-            continue
+    for i, j in _windows(imu, t, length_s, stride_s):
         bias = make_bias(accel_bias[i], gyro_bias[i])
         pim = preintegrate(imu, t[i], t[j], params, bias)
         Ri, pi = T_world_body[i, :3, :3], T_world_body[i, :3, 3]
@@ -165,12 +168,8 @@ def window_residuals(imu: ImuSamples, t: np.ndarray, T_world_body: np.ndarray, v
     p_fixed = make_params(ImuNoise(0.0, noise.gyro_random_walk, 0.0, noise.accel_random_walk, noise.rate_hz), gravity)
     p_gyro = make_params(ImuNoise(1.0, 0.0, 0.0, 0.0, noise.rate_hz), gravity, integration_sigma=0.0)
     p_accel = make_params(ImuNoise(0.0, 0.0, 1.0, 0.0, noise.rate_hz), gravity, integration_sigma=0.0)
-    steps = max(1, int(round(length_s / float(np.median(np.diff(t))))))
     rows: list[tuple] = []
-    for i in range(0, len(t) - steps, steps):
-        j = i + steps
-        if t[i] < imu.t[0] or t[j] > imu.t[-1]:
-            continue
+    for i, j in _windows(imu, t, length_s):
         Ri, pi, vi = T_world_body[i, :3, :3], T_world_body[i, :3, 3], velocity[i]
 
         def resid(ba: np.ndarray, bg: np.ndarray, pim) -> np.ndarray:

@@ -149,7 +149,7 @@ class LoopCloser:
         # initial guess: the query and its neighbours take the verified correction rigidly (ORB-SLAM)
         T_corr = match.T_world_cam @ inv_T(before[kf.id])
         guess = dict(before)
-        group = [kf.id, *m.covisible_keyframes(kf.id, self.cfg.group_min_shared, self.cfg.fuse_neighbors)]
+        group = self._loop_group(kf)
         for k in group:
             guess[k] = T_corr @ before[k]
         # One loop edge per keyframe of the corrected group (ORB-SLAM's loop connections). A single edge loses
@@ -162,11 +162,21 @@ class LoopCloser:
         log.debug("pose graph: %d keyframes, %d edges, error %.3g -> %.3g", len(after), len(edges) + len(new), e0, e1)
         for k, T in after.items():
             m.keyframes[k].T_world_cam = T
-        for mp in m.points.values():  # a point follows its reference keyframe
-            ref = mp.first_kf if mp.first_kf in m.keyframes else min(mp.observations)
-            D = after[ref] @ inv_T(before[ref])
-            mp.xyz = D[:3, :3] @ mp.xyz + D[:3, 3]
+        self._points_follow({k: after[k] @ inv_T(before[k]) for k in after})
         self.fuse(kf, match)
+
+    def _loop_group(self, kf: KeyFrame) -> list[int]:
+        """The query keyframe and its neighbours: they take the verified correction as the initial guess and each
+        gets a loop edge (ORB-SLAM's loop connections)."""
+        return [kf.id, *self.map.covisible_keyframes(kf.id, self.cfg.group_min_shared, self.cfg.fuse_neighbors)]
+
+    def _points_follow(self, delta: dict[int, np.ndarray]) -> None:
+        """Every map point moves with its reference keyframe: x <- D x, D (4,4) rigid or similarity per keyframe."""
+        m = self.map
+        for mp in m.points.values():
+            ref = mp.first_kf if mp.first_kf in m.keyframes else min(mp.observations)
+            D = delta[ref]
+            mp.xyz = D[:3, :3] @ mp.xyz + D[:3, 3]
 
     def loop_scale(self, kf: KeyFrame, match: LoopMatch) -> float | None:
         """Monocular: length in the old (candidate-side) map per length in the query's drifted map -- the median
@@ -193,7 +203,7 @@ class LoopCloser:
         # the query side's world -> the old side's: X_old = S_corr X_query
         S_corr = sim_matrix(match.T_world_cam, scale) @ np.linalg.inv(S0[kf.id])
         guess = dict(S0)
-        group = [kf.id, *m.covisible_keyframes(kf.id, self.cfg.group_min_shared, self.cfg.fuse_neighbors)]
+        group = self._loop_group(kf)
         for k in group:
             guess[k] = S_corr @ S0[k]
         edges = [SimEdge(e.i, e.j, sim_matrix(e.T_i_j)) for e in self.pose_graph_edges(before)]
@@ -208,10 +218,7 @@ class LoopCloser:
             R, t, sk = sim_parts(S)
             m.keyframes[k].T_world_cam = make_T(R, t)
             scales[k] = sk
-        for mp in m.points.values():  # a point follows its reference keyframe's similarity
-            ref = mp.first_kf if mp.first_kf in m.keyframes else min(mp.observations)
-            D = after[ref] @ np.linalg.inv(S0[ref])
-            mp.xyz = D[:3, :3] @ mp.xyz + D[:3, 3]
+        self._points_follow({k: after[k] @ np.linalg.inv(S0[k]) for k in after})
         if self.frames is not None:
             self.frames.scale_refs(scales)
         self.last_scale = scales[kf.id]

@@ -8,7 +8,6 @@ optical axes within ``pos_deg`` degrees; they show different places beyond ``neg
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,13 +76,3 @@ def sequence_places(path: str | Path, stride: int = 1, max_frames: int = 0) -> P
         idx.append(fr.index)
     T = np.array(T).reshape(-1, 4, 4)
     return PlaceSet(Path(path).name, imgs, T[:, :3, 3], T[:, :3, 2], np.array(idx))
-
-
-def halves(s: PlaceSet) -> tuple[PlaceSet, PlaceSet]:
-    """(database = first half of the route, queries = second half): a 2-lap route revisits every place."""
-    n = len(s) // 2
-    return s.subset(np.arange(n)), s.subset(np.arange(n, len(s)))
-
-
-def renamed(s: PlaceSet, name: str) -> PlaceSet:
-    return dataclasses.replace(s, name=name)

@@ -10,11 +10,13 @@ native input: the BoW baseline the tracker's ORB keypoints of the full image, VL
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from vslam.loop.place_data import PlaceSet, same_place
+from vslam.loop.place_data import PlaceSet, same_place, sequence_places, synthetic_route
 
 Describer = Callable[[list], np.ndarray]  # images -> (N,D) unit descriptors
 
@@ -62,23 +64,60 @@ def recall_at(desc_db: np.ndarray, desc_q: np.ndarray, positives: np.ndarray, ks
     return out
 
 
-def evaluate_retrieval(describers: dict[str, Describer], db: PlaceSet, queries: PlaceSet | None, pos_m: float,
-                       pos_deg: float, exclude_frames: int = 0, ks: tuple[int, ...] = (1, 5, 10)) -> dict[str, dict]:
-    """recall@k of each describer; ``queries`` None = the set against itself. exclude_frames > 0: both come from
-    one sequence, and pairs closer than that many frames are never ranked (a frame never finds itself)."""
-    q = db if queries is None else queries
+def evaluate_retrieval(describers: dict[str, Describer], places: PlaceSet, db_rows: np.ndarray, query_rows: np.ndarray,
+                       pos_m: float, pos_deg: float, exclude_frames: int = 0,
+                       ks: tuple[int, ...] = (1, 5, 10)) -> dict[str, dict]:
+    """recall@k of each describer for the queries ``places[query_rows]`` against the database ``places[db_rows]``
+    (each image described once, also when it is in both). exclude_frames > 0: pairs closer than that many frames
+    are never ranked (a frame never finds itself or its neighbours)."""
+    db, q = places.subset(db_rows), places.subset(query_rows)
     pos = same_place(q, db, pos_m, pos_deg)
-    excl = None
-    if queries is None or exclude_frames > 0:
-        excl = np.abs(q.index[:, None] - db.index[None]) < max(exclude_frames, 1)
+    excl = np.abs(q.index[:, None] - db.index[None]) < exclude_frames if exclude_frames > 0 else None
     out = {}
     for name, fn in describers.items():
         t0 = time.perf_counter()
-        d_db = fn(db.images)
-        d_q = d_db if queries is None else fn(q.images)
-        ms = (time.perf_counter() - t0) * 1e3 / (len(db) + (0 if queries is None else len(q)))
-        out[name] = {**recall_at(d_db, d_q, pos, ks, excl), "ms_per_image": ms, "dim": int(d_db.shape[1])}
+        d = fn(places.images)
+        ms = (time.perf_counter() - t0) * 1e3 / len(places)
+        out[name] = {**recall_at(d[db_rows], d[query_rows], pos, ks, excl), "ms_per_image": ms, "dim": int(d.shape[1])}
     return out
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """One evaluation set: queries (rows of ``places``) against a database (rows), what counts as the same place,
+    its table label."""
+
+    label: str
+    places: PlaceSet
+    db_rows: np.ndarray
+    query_rows: np.ndarray
+    pos_m: float
+    pos_deg: float
+    exclude_frames: int = 0
+
+
+def held_out_sets(seed: int = 0, frames: int = 600, size: tuple[int, int] = (320, 240), stride: int = 3,
+                  speed: float = 1.4, pos_m: float = 0.5, pos_deg: float = 30.0, tum: Path | None = None,
+                  tum_split: int = 100, tum_pos_m: float = 0.3, tum_exclude_frames: int = 30) -> dict[str, HeldOut]:
+    """The sets VLADNet never trained on, shared by its trainer and ``vslam bench``: "synthetic" -- the second half
+    of the 2-lap looping route ``seed`` (lighting change on) against its first half; "tum" (when ``tum`` exists) --
+    frames from ``tum_split`` on against every frame at least ``tum_exclude_frames`` away."""
+    r = synthetic_route(seed, frames, size, stride, speed=speed)
+    half = len(r) // 2
+    out = {"synthetic": HeldOut(f"synthetic room seed {seed}, 2 laps, lighting change: lap 2 vs lap 1 "
+                                f"(≤ {pos_m:g} m, ≤ {pos_deg:g}°)", r, np.arange(half), np.arange(half, len(r)), pos_m, pos_deg)}
+    if tum is not None and Path(tum).exists():
+        t = sequence_places(tum)
+        out["tum"] = HeldOut(f"TUM fr3/teddy, frames ≥ {tum_split} (not trained on) vs every frame ≥ {tum_exclude_frames} "
+                             f"apart (≤ {tum_pos_m:g} m, ≤ {pos_deg:g}°)", t, np.arange(len(t)),
+                             np.flatnonzero(t.index >= tum_split), tum_pos_m, pos_deg, tum_exclude_frames)
+    return out
+
+
+def evaluate_held_out(describers: dict[str, Describer], sets: dict[str, HeldOut]) -> dict[str, dict]:
+    """``evaluate_retrieval`` on each of ``held_out_sets``, keyed like them."""
+    return {k: evaluate_retrieval(describers, h.places, h.db_rows, h.query_rows, h.pos_m, h.pos_deg, h.exclude_frames)
+            for k, h in sets.items()}
 
 
 def database_costs(dim: int, n: int = 10_000, seed: int = 0, repeats: int = 20) -> dict[str, float]:

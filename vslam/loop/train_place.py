@@ -141,31 +141,33 @@ def photometric(im: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return out
 
 
+def _gt_pool(name: str, s, pos_m: float, pos_deg: float, neg_m: float, facing_away: bool) -> _Pool:
+    """A pool from ground truth: same place within ``pos_m`` / ``pos_deg``; different beyond ``neg_m`` or, with
+    ``facing_away``, looking the other way (optical axes > 90 deg apart)."""
+    from vslam.loop.place_data import same_place
+
+    neg = np.linalg.norm(s.positions[:, None] - s.positions[None], axis=2) > neg_m
+    if facing_away:
+        neg |= s.axes @ s.axes.T < 0
+    return _Pool(name, s.images, same_place(s, s, pos_m, pos_deg), neg)
+
+
 def _pools(cfg: PlaceTrainConfig, root: Path) -> list[_Pool]:
-    from vslam.loop.place_data import same_place, sequence_places, synthetic_route
+    from vslam.loop.place_data import sequence_places, synthetic_route
 
     pools = []
-    imgs, pos, neg = [], [], []
-    for s in cfg.synthetic_seeds:
-        imgs.append(synthetic_route(s, cfg.synthetic_frames, cfg.synthetic_size, cfg.synthetic_stride, speed=cfg.synthetic_speed))
-    if imgs:
-        # one pool per route: places of different routes are different rooms, but never compared
-        for r in imgs:  # a different place: far away, or the other way round (optical axes > 90 deg apart)
-            d = np.linalg.norm(r.positions[:, None] - r.positions[None], axis=2)
-            neg = (d > cfg.neg_m) | (r.axes @ r.axes.T < 0)
-            pools.append(_Pool(r.name, r.images, same_place(r, r, cfg.pos_m, cfg.pos_deg), neg))
+    for seed in cfg.synthetic_seeds:  # one pool per route: places of different rooms are never compared
+        r = synthetic_route(seed, cfg.synthetic_frames, cfg.synthetic_size, cfg.synthetic_stride, speed=cfg.synthetic_speed)
+        pools.append(_gt_pool(r.name, r, cfg.pos_m, cfg.pos_deg, cfg.neg_m, facing_away=True))
     if cfg.kitti and (root / cfg.kitti).exists():
-        k = sequence_places(root / cfg.kitti)
-        d = np.linalg.norm(k.positions[:, None] - k.positions[None], axis=2)
-        pools.append(_Pool("kitti", k.images, same_place(k, k, cfg.kitti_pos_m, cfg.pos_deg), d > cfg.kitti_neg_m))
+        pools.append(_gt_pool("kitti", sequence_places(root / cfg.kitti), cfg.kitti_pos_m, cfg.pos_deg, cfg.kitti_neg_m,
+                              facing_away=False))
     elif cfg.kitti:
         log.warning("KITTI frames not found at %s: trained without them", root / cfg.kitti)
     if cfg.tum and (root / cfg.tum).exists():
         t = sequence_places(root / cfg.tum)
-        t = t.subset(t.index < cfg.tum_split)
-        d = np.linalg.norm(t.positions[:, None] - t.positions[None], axis=2)
-        neg = (d > cfg.tum_neg_m) | (t.axes @ t.axes.T < 0)
-        pools.append(_Pool("tum", t.images, same_place(t, t, cfg.tum_pos_m, cfg.pos_deg), neg))
+        pools.append(_gt_pool("tum", t.subset(t.index < cfg.tum_split), cfg.tum_pos_m, cfg.pos_deg, cfg.tum_neg_m,
+                              facing_away=True))
     elif cfg.tum:
         log.warning("TUM frames not found at %s: trained without them", root / cfg.tum)
     if cfg.coco and (root / cfg.coco).exists():
@@ -190,23 +192,24 @@ def _kmeans(x, k: int, iters: int, gen):
     return torch.nn.functional.normalize(c, dim=1)
 
 
-def evaluate(model, cfg: PlaceTrainConfig, root: Path, with_bow: bool = False) -> dict:
-    """Held-out recall@1/5/10: synthetic seed ``val_seed`` (second half vs first) and TUM teddy (within)."""
-    from vslam.loop.place_data import halves, sequence_places, synthetic_route
-    from vslam.loop.retrieval import bow_describer, evaluate_retrieval
+def held_out(cfg: PlaceTrainConfig, root: Path) -> dict:
+    """The held-out evaluation sets of this recipe (``retrieval.held_out_sets``), built once per run."""
+    from vslam.loop.retrieval import held_out_sets
+
+    return held_out_sets(cfg.val_seed, cfg.synthetic_frames, cfg.synthetic_size, cfg.synthetic_stride, cfg.synthetic_speed,
+                         cfg.pos_m, cfg.pos_deg, root / cfg.tum if cfg.tum else None, cfg.tum_split, cfg.tum_pos_m,
+                         cfg.tum_exclude_frames)
+
+
+def evaluate(model, sets: dict, with_bow: bool = False) -> dict:
+    """Held-out recall@1/5/10 of ``model`` (and the BoW baseline) on ``held_out`` sets."""
+    from vslam.loop.retrieval import bow_describer, evaluate_held_out
     from vslam.loop.vladnet import VladNetDescriptor
 
     desc = {"vladnet": VladNetDescriptor(model).describe_many}
     if with_bow:
         desc["bow"] = bow_describer()
-    r = synthetic_route(cfg.val_seed, cfg.synthetic_frames, cfg.synthetic_size, cfg.synthetic_stride, speed=cfg.synthetic_speed)
-    db, q = halves(r)
-    out = {"synthetic": evaluate_retrieval(desc, db, q, cfg.pos_m, cfg.pos_deg)}
-    if cfg.tum and (root / cfg.tum).exists():
-        t = sequence_places(root / cfg.tum)
-        out["tum"] = evaluate_retrieval(desc, t, t.subset(t.index >= cfg.tum_split), cfg.tum_pos_m, cfg.pos_deg,
-                                        cfg.tum_exclude_frames)
-    return out
+    return evaluate_held_out(desc, sets)
 
 
 def train(cfg: PlaceTrainConfig) -> dict:
@@ -265,9 +268,9 @@ def _train(cfg: PlaceTrainConfig, dev, rank: int, n_ranks: int) -> dict:
             f = torch.nn.functional.normalize(f, dim=1).permute(0, 2, 3, 1).reshape(-1, f.shape[1]).cpu()
             f = f[torch.randperm(len(f), generator=gen)[:20000]]
             model.vlad.init_clusters(_kmeans(f, cfg.clusters, 20, gen).to(dev))
-    eval_init = None
+    eval_init, val_sets = None, held_out(cfg, root) if lead else {}
     if step == 0 and lead:  # the same held-out recall before training (k-means clusters only): what training adds
-        eval_init = evaluate(model.eval(), cfg, root)
+        eval_init = evaluate(model.eval(), val_sets)
     net = ddp.wrap(model, dev, n_ranks)  # DDP broadcasts rank 0's (identical) start here
     if n_ranks > 1:  # each rank draws its own triplets: the global batch is n_ranks x batch
         rng = np.random.default_rng([cfg.seed, rank, step])
@@ -315,7 +318,7 @@ def _train(cfg: PlaceTrainConfig, dev, rank: int, n_ranks: int) -> dict:
                "loss_last": float(np.mean(history[-n_first:])), "train_s": time.perf_counter() - t_train,
                "parameters": int(sum(p.numel() for p in model.parameters())),
                "pools": {p.name: len(p.images) for p in pools}, "device": str(dev)}
-    metrics["eval"] = evaluate(model, cfg, root, with_bow=not cfg.toy)
+    metrics["eval"] = evaluate(model, val_sets, with_bow=not cfg.toy)
     if eval_init is not None:
         metrics["eval_init"] = eval_init
     meta = {k: metrics[k] for k in ("steps", "loss_first", "loss_last", "train_s", "parameters", "pools", "device")}
@@ -327,26 +330,16 @@ def _train(cfg: PlaceTrainConfig, dev, rank: int, n_ranks: int) -> dict:
 
 
 def add_cli(train_sub) -> None:
-    p = train_sub.add_parser("place", help="train the VLADNet place descriptor (synthetic routes + KITTI + COCO)")
-    p.add_argument("--config", "-c", help="YAML with PlaceTrainConfig fields")
-    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a field, e.g. steps=3000")
-    p.add_argument("--out", "-o", help="output folder (last.pt, model.pt, metrics.json)")
-    p.add_argument("--toy", action="store_true", help="tiny CPU smoke run of the whole recipe")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
-    p.add_argument("--device", choices=["auto", "cpu", "cuda"])
-    p.set_defaults(fn=_cmd)
+    from vslam.train_cli import add_train_parser
+
+    add_train_parser(train_sub, "place", "train the VLADNet place descriptor (synthetic routes + KITTI + COCO + TUM)",
+                     "PlaceTrainConfig", "steps=3000", "last.pt, model.pt, metrics.json", _cmd)
 
 
 def _cmd(args) -> int:
-    from vslam.config import load_config, parse_overrides
+    from vslam.train_cli import train_config
 
-    over = parse_overrides(args.set or [])
-    for key, val in (("out", args.out), ("device", args.device)):
-        if val is not None:
-            over[key] = val
-    if args.toy:
-        over["toy"] = True
-    if args.resume:
-        over["resume"] = True
-    print(json.dumps(train(load_config(PlaceTrainConfig, args.config, over))["eval"], indent=2))
+    metrics = train(train_config(PlaceTrainConfig, args))
+    if metrics:  # under torchrun only rank 0 evaluates
+        print(json.dumps(metrics["eval"], indent=2))
     return 0
