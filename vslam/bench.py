@@ -44,7 +44,7 @@ PER_FRAME = ("features", "depth", "pose", "total")  # run on every frame: median
 @dataclass(frozen=True)
 class BenchRow:
     name: str
-    kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch", "place"] = "run"
+    kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch", "place", "features"] = "run"
     config: str = ""  # pipeline YAML, relative to the suite file's folder's parent (the repo root) or absolute
     set: tuple[str, ...] = ()  # KEY=VALUE overrides
     note: str = ""
@@ -194,6 +194,23 @@ def _job_place(overrides: dict[str, Any]) -> dict[str, Any]:
             "peak_rss_mb": _peak_rss_mb()}
 
 
+def _job_features(overrides: dict[str, Any]) -> dict[str, Any]:
+    """Issue 4: ConvPoint vs ORB vs SIFT on the same held-out pairs (``set``: keypoints, pairs, images, seed,
+    weights=<file>; ``features.evaluate``)."""
+    import torch
+
+    from vslam.features.convpoint import default_weights
+    from vslam.features.evaluate import FeatureBenchConfig, run_feature_bench
+    from vslam.paths import data_root
+
+    torch.set_num_threads(2)
+    t0 = time.perf_counter()
+    cfg = FeatureBenchConfig(n_keypoints=int(overrides.get("keypoints", 1000)), pairs_per_image=int(overrides.get("pairs", 2)),
+                             max_images_per_source=int(overrides.get("images", 12)), seed=int(overrides.get("seed", 0)))
+    res = run_feature_bench(str(overrides.get("weights") or default_weights()), data_root(), cfg)
+    return {**res, "seconds": time.perf_counter() - t0, "peak_rss_mb": _peak_rss_mb()}
+
+
 def execute_job(kind: str, config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
     """One job in this process -> its result row (``vslam.batch`` calls this in its worker processes)."""
     if kind == "fusion":
@@ -202,6 +219,8 @@ def execute_job(kind: str, config: str | None, overrides: dict[str, Any], out_di
         return _job_imu_preint(overrides)
     if kind == "place":
         return _job_place(overrides)
+    if kind == "features":
+        return _job_features(overrides)
     fn = _job_run if kind == "run" else _job_render
     return fn(config, overrides, out_dir)
 
@@ -343,8 +362,8 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
             kept[row.name] = {"result": _json_safe(result), "measured": now, "repeat": 1, "machine": machine}
         elif row.kind == "fusion":  # one seeded, deterministic run: repeating it only costs time
             plan.append((row, [Job("fusion", row.experiment, over, str(jobs_dir / row.name))]))
-        else:  # a place row is deterministic and reports no timing that repeats would steady
-            n = 1 if row.kind == "place" else max(1, repeat)
+        else:  # a place / features row is deterministic and reports no timing that repeats would steady
+            n = 1 if row.kind in ("place", "features") else max(1, repeat)
             plan.append((row, [Job(row.kind, cfg, over, str(jobs_dir / f"{row.name}-{i}")) for i in range(n)]))
     results = iter(run_jobs([j for _, jobs in plan for j in jobs], workers, ray))
     parallel = {"parallel": workers if ray is None else f"ray:{workers}"} if workers > 1 or ray is not None else {}
@@ -422,7 +441,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     ]
     for row, e in entries:
         r, repeat = e["result"], int(e["repeat"])
-        if row.kind in ("fusion", "imu_preint", "batch", "place"):  # own tables below
+        if row.kind in ("fusion", "imu_preint", "batch", "place", "features"):  # own tables below
             continue
         if "error" in r:
             lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | | | | {row.target} |")
@@ -451,6 +470,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
                 lines.append(f"| {row.name} | {r['headline']} | {r['seed_claim']} | {r['seconds']:.0f} | `{r['report']}` |")
     lines += _imu_table([(row, e["result"]) for row, e in entries if row.kind == "imu_preint"])
     lines += _place_table([(row, e["result"]) for row, e in entries if row.kind == "place"])
+    lines += _features_table([(row, e["result"]) for row, e in entries if row.kind == "features"])
     lines += batch_table([(row, e["result"]) for row, e in entries if row.kind == "batch"])
     notes = [f"- **{row.name}**: {row.note}" for row, _ in entries if row.note]
     if notes:
@@ -540,6 +560,20 @@ def _place_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     for row, r in rows:
         for d, c in r.get("costs", {}).items():
             lines.append(f"| {row.name} | {d} | {c['bytes_per_keyframe']} | {c['query_ms']:.2f} |")
+    return lines
+
+
+def _features_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
+    """Issue 4: the homography benchmark and epipolar inliers, ConvPoint vs ORB vs SIFT in one run."""
+    from vslam.features.evaluate import format_table
+
+    lines = []
+    for row, r in rows:
+        lines += ["", f"## Keypoints: ConvPoint vs ORB vs SIFT (issue 4, `{row.name}`)", ""]
+        if "error" in r:
+            lines.append(f"**failed**: {r['error']}")
+            continue
+        lines += [*format_table(r), "", f"Target: {row.target}"]
     return lines
 
 

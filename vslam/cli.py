@@ -202,13 +202,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_fusion_cli(sub)
     # `vslam train <model>`: each model's trainer adds its own subcommand from its own module
-    train_sub = sub.add_parser("train", help="train a network (detector, ...)").add_subparsers(dest="model", required=True)
+    train_sub = sub.add_parser("train", help="train a network (detector, place, keypoints)").add_subparsers(dest="model", required=True)
     from vslam.dynamic.train_cli import add_cli as add_detector_train_cli
 
     add_detector_train_cli(train_sub)
     from vslam.loop.train_place import add_cli as add_place_train_cli
 
     add_place_train_cli(train_sub)
+    from vslam.features.train_keypoints import add_cli as add_keypoint_train_cli
+
+    add_keypoint_train_cli(train_sub)
+    from vslam.features.cli import add_cli as add_eval_features_cli
+
+    add_eval_features_cli(sub)
     from vslam.dynamic.composite import add_cli as add_make_dynamic_cli
 
     add_make_dynamic_cli(sub)

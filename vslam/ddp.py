@@ -37,11 +37,13 @@ def stop(n_ranks: int) -> None:
         torch.distributed.destroy_process_group()
 
 
-def wrap(model: torch.nn.Module, dev: torch.device, n_ranks: int) -> torch.nn.Module:
-    """The module the forward pass goes through: DDP (broadcasts rank 0's weights now) or the model itself."""
+def wrap(model: torch.nn.Module, dev: torch.device, n_ranks: int, find_unused: bool = False) -> torch.nn.Module:
+    """The module the forward pass goes through: DDP (broadcasts rank 0's weights now) or the model itself.
+    ``find_unused``: a stage whose loss leaves some parameters without gradient (a head trained later)."""
     if n_ranks <= 1:
         return model
-    return torch.nn.parallel.DistributedDataParallel(model, device_ids=[dev.index] if dev.type == "cuda" else None)
+    return torch.nn.parallel.DistributedDataParallel(model, device_ids=[dev.index] if dev.type == "cuda" else None,
+                                                     find_unused_parameters=find_unused)
 
 
 def check_in_sync(model: torch.nn.Module) -> None:

@@ -1,7 +1,7 @@
 """Keypoint extractors behind one protocol, and descriptor matching.
 
-``EXTRACTORS`` maps a config name to a factory ``cfg -> Extractor``; the
-learned ConvPoint extractor will register here under "convpoint".
+``EXTRACTORS`` maps a config name to a factory ``cfg -> Extractor``: "orb" (OpenCV) and "convpoint"
+(the learned detector + descriptor, ``features.convpoint``).
 """
 
 from __future__ import annotations
@@ -11,7 +11,15 @@ from typing import Callable
 from vslam.features.base import Extractor, FeatureConfig, Features
 from vslam.features.orb import OrbExtractor
 
-EXTRACTORS: dict[str, Callable[[FeatureConfig], Extractor]] = {"orb": OrbExtractor}
+
+
+def _convpoint(cfg: FeatureConfig) -> Extractor:
+    from vslam.features.convpoint import ConvPointExtractor  # torch is imported only when it is used
+
+    return ConvPointExtractor(cfg)
+
+
+EXTRACTORS: dict[str, Callable[[FeatureConfig], Extractor]] = {"orb": OrbExtractor, "convpoint": _convpoint}
 
 
 def make_extractor(cfg: FeatureConfig) -> Extractor:

@@ -27,6 +27,11 @@ class FeatureConfig:
     oversample: float = 3.0  # detect this many times n_features, then bucket
     grid_cols: int = 16
     grid_rows: int = 12
+    # extractor "convpoint" (the learned detector + descriptor, issue 4)
+    weights: str = ""  # "" = the shipped models/convpoint_v1.pt
+    device: str = "auto"  # auto = CUDA when available
+    conf_thresh: float = 0.005  # keypoint probability after NMS
+    nms_radius: int = 4  # pixels
 
 
 @dataclass

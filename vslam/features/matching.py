@@ -1,8 +1,12 @@
 """Descriptor matching: mutual nearest neighbours with a ratio test, and
 projection-guided matching of map points into a frame.
 
-Binary descriptors use Hamming distance (bits), float descriptors L2.
-Everything is vectorised; ties are broken by index so results are deterministic.
+Binary descriptors use Hamming distance (bits), float descriptors L2. Every threshold in the configs is in
+bits of a 256-bit ORB descriptor; a float (unit-length) descriptor's L2 distance is reported in the same
+unit, scaled by ``BITS_PER_L2`` so that unrelated descriptors sit where unrelated ORB descriptors do (128
+bits apart; orthogonal unit vectors are sqrt(2) apart). ORB's 64-bit match limit is then an L2 of 0.71,
+the usual SuperPoint matching threshold (0.7). Everything is vectorised; ties are broken by index so
+results are deterministic.
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.int32)
+BITS_PER_L2 = 128.0 / np.sqrt(2.0)
 
 
 def hamming_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -20,17 +25,20 @@ def hamming_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def descriptor_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise distance of paired descriptors: Hamming for uint8, L2 for float."""
+    """Row-wise distance of paired descriptors in bits: Hamming for uint8, ``BITS_PER_L2`` x L2 for float."""
     if a.dtype == np.uint8:
         return hamming_rows(a, b)
-    return np.linalg.norm(a.astype(np.float32) - b.astype(np.float32), axis=1)
+    return BITS_PER_L2 * np.linalg.norm(a.astype(np.float32) - b.astype(np.float32), axis=1)
 
 
 def match_mutual(d1: np.ndarray, d2: np.ndarray, ratio: float = 0.8, max_dist: float = np.inf) -> np.ndarray:
-    """(M,2) index pairs (i in d1, j in d2): mutual nearest neighbours passing Lowe's ratio test."""
+    """(M,2) index pairs (i in d1, j in d2): mutual nearest neighbours passing Lowe's ratio test.
+    ``max_dist`` in bits (module docstring)."""
     if len(d1) < 2 or len(d2) < 2:
         return np.zeros((0, 2), np.int64)
     norm = cv2.NORM_HAMMING if d1.dtype == np.uint8 else cv2.NORM_L2
+    if d1.dtype != np.uint8:
+        max_dist = max_dist / BITS_PER_L2
     bf = cv2.BFMatcher(norm)
     fwd = bf.knnMatch(d1, d2, k=2)
     bwd = np.full(len(d2), -1, np.int64)

@@ -6,7 +6,7 @@ the disparity of two ORB keypoints is quantised to their pyramid level (1.2^l px
 baseline that is a depth error of several per cent, which local BA cannot average away. Here:
 
 1. Candidates: right keypoints on the left keypoint's row (|v_l - v_r| <= 2 x 1.2^octave), within the
-   disparity range of [min_depth, max_depth], octave within one level; the best Hamming distance <=
+   disparity range of [min_depth, max_depth], octave within one level; the best descriptor distance (bits, ``matching``) <=
    ``max_hamming`` wins, one left keypoint per right keypoint.
 2. Refinement on the left keypoint's pyramid level: sum of absolute differences of an 11x11 patch along the
    row, offsets -5..5 around the matched right x, parabola through the minimum and its neighbours;
@@ -24,7 +24,7 @@ import numpy as np
 
 from vslam.data.types import Calibration
 from vslam.features.base import Features
-from vslam.features.matching import best_pairs, hamming_rows
+from vslam.features.matching import best_pairs, descriptor_rows
 
 _W = 5  # half patch
 _L = 5  # half search range (pixels of the keypoint's level)
@@ -60,7 +60,7 @@ def _row_matches(left: Features, right: Features, fx_b: float, min_depth: float,
     ok = (dv <= band[:, None]) & (disp >= fx_b / max_depth) & (disp <= fx_b / min_depth)
     ok &= np.abs(left.octave[:, None] - right.octave[None, :]) <= 1
     il, ir = np.nonzero(ok)
-    pairs = best_pairs(il, ir, hamming_rows(left.desc[il], right.desc[ir]).astype(np.float64), max_hamming, None)
+    pairs = best_pairs(il, ir, descriptor_rows(left.desc[il], right.desc[ir]).astype(np.float64), max_hamming, None)
     return pairs[:, 0], pairs[:, 1]
 
 

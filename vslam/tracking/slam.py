@@ -82,6 +82,11 @@ class SlamTracker:
             disparity_sigma = cfg.backend.stereo_disparity_sigma
         self.stereo_cam = StereoCamera(self.cam.fx, self.cam.fy, self.cam.cx, self.cam.cy, baseline, disparity_sigma)
         self.extractor = make_extractor(cfg.features)
+        if cfg.loop.enabled and cfg.loop.descriptor == "bow" and self.extractor.descriptor_kind != "binary":
+            from vslam.errors import ConfigError
+
+            raise ConfigError(f"slam.loop.descriptor: bow needs binary (ORB) keypoint descriptors, features.extractor is "
+                              f"'{cfg.features.extractor}' (use slam.loop.descriptor=vladnet)")
         self.map = Map()
         self.frames = FrameLog(self.map)  # for trajectory_final: frames follow their keyframes (final_poses)
         self.tracker = Tracker(self.map, self.cam, self.stereo_cam, cfg.tracking, cfg.backend)
@@ -110,12 +115,23 @@ class SlamTracker:
         self._pre_init: list[tuple[int, Features]] = []  # monocular: (frame index, keypoints) before the map
 
     # -- per-frame --------------------------------------------------------------
-    def _depth(self, frame: Frame, feats: Features) -> np.ndarray:
+    def _extract(self, frame: Frame) -> tuple[Features, Features | None]:
+        """Keypoints of the image and (stereo) of the right image: one batch when the extractor has
+        ``detect_many`` (a network: one forward pass for the pair)."""
+        right_img = frame.right if self.sensor == "stereo" else None
+        if right_img is not None and hasattr(self.extractor, "detect_many") and right_img.shape == frame.image.shape:
+            left, right = self.extractor.detect_many([frame.image, right_img], [self.cam, self.calib.cam1])
+            return left, right
+        feats = self.extractor.detect(frame.image, self.cam)
+        if right_img is None or not len(feats):
+            return feats, None
+        return feats, self.extractor.detect(right_img, self.calib.cam1)  # type: ignore[arg-type]
+
+    def _depth(self, frame: Frame, feats: Features, right: Features | None) -> np.ndarray:
         tc = self.cfg.tracking
         if self.sensor == "rgbd":
             return depth_rgbd(frame.depth, feats, tc.min_depth, tc.max_depth)
-        if self.sensor == "stereo" and frame.right is not None and len(feats):
-            right = self.extractor.detect(frame.right, self.calib.cam1)  # type: ignore[arg-type]
+        if self.sensor == "stereo" and right is not None and len(feats):
             if self.rectified:
                 return depth_stereo_rectified(frame.image, frame.right, feats, right, self.calib, tc.min_depth,
                                               tc.max_depth, n_levels=self.cfg.features.n_levels)
@@ -126,7 +142,7 @@ class SlamTracker:
         t0 = time.perf_counter()
         if self.vio is not None:
             self.vio.add_imu(frame)
-        feats = self.extractor.detect(frame.image, self.cam)
+        feats, right = self._extract(frame)
         t_feat = time.perf_counter()
         if self.dynamic is not None:  # issue 5: keypoints on moving objects reach neither tracking nor mapping
             feats = feats.subset(np.flatnonzero(self.dynamic.keep(frame, feats)))
@@ -134,7 +150,7 @@ class SlamTracker:
         if self.lines is not None:
             self._line_feats, self._line_ids = self.lines.detect(frame.image), None
         t1 = time.perf_counter()
-        depth = self._depth(frame, feats)
+        depth = self._depth(frame, feats, right)
         ur = stereo_ur(feats.uv, depth, self.cam.fx, self.baseline) if self.baseline > 0 else np.full(len(feats), np.nan)
         t2 = time.perf_counter()
         est = FrameEstimate(self.T_world_cam, tracked=False, n_features=len(feats))
