@@ -11,6 +11,11 @@ from vslam.features.evaluate import (
 from vslam.features.homography import random_homography, warp_points
 from vslam.features.matching import BITS_PER_L2, descriptor_rows, match_mutual
 
+# models/convpoint_v1.pt on these 8 pairs (illumination): repeatability 0.669, MMA@3 0.855 (ORB over the full
+# benchmark: 0.672 / 0.621); a regression of the detector or the descriptor falls below these
+REPEATABILITY_MIN = 0.60
+MMA3_MIN = 0.78
+
 
 def _perfect(rng, n=200, h=120, w=160):
     H = random_homography(rng, h, w)
@@ -90,6 +95,3 @@ def test_shipped_weights_repeatability_and_matching_hold(tum_teddy):
     ill = res["illumination"]["convpoint"]
     assert ill["repeatability"] >= REPEATABILITY_MIN and ill["mma@3"] >= MMA3_MIN
 
-
-REPEATABILITY_MIN = 0.0  # set from the trained weights' measurement below
-MMA3_MIN = 0.0

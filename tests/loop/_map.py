@@ -29,6 +29,6 @@ def room_map() -> tuple[SlamTracker, list, np.ndarray]:
 
 def query(st: SlamTracker, frame):
     """Keypoints, depth-derived virtual right x of a frame, as the tracker computes them."""
-    feats = st.extractor.detect(frame.image, st.cam)
-    depth = st._depth(frame, feats)
+    feats, right = st._extract(frame)
+    depth = st._depth(frame, feats, right)
     return feats, stereo_ur(feats.uv, depth, st.cam.fx, st.baseline)

@@ -17,7 +17,7 @@ for ``vslam eval-features`` (``features.evaluate.held_out_images``) and never tr
 of any real image are used.
 
 Seeded; ``out/last.pt`` every ``ckpt_every`` steps of a stage (``resume`` continues the stage it holds);
-``toy`` is a tiny CPU smoke run of the same recipe (tests). Mixed precision (bf16) on CUDA. Several GPUs or
+``out/log.jsonl`` holds the loss curve; ``toy`` is a tiny CPU smoke run of the same recipe (tests). Mixed precision (bf16) on CUDA. Several GPUs or
 CPU processes: ``torchrun --nproc_per_node=N -m vslam.cli train keypoints ...`` (``vslam.ddp``).
 """
 
@@ -380,8 +380,12 @@ def _train(cfg: KeypointTrainConfig, dev, rank: int, n_ranks: int) -> dict:
             for k, v in parts.items():
                 state["history"][k].append(v)
             if lead and state["step"] % cfg.log_every == 0:
-                msg = ", ".join(f"{k} {np.mean(state['history'][k][-cfg.log_every:]):.4f}" for k in parts)
-                log.info("%s step %d/%d %s (%.2f s/step)", name, state["step"], steps, msg, (time.perf_counter() - t0) / max(state["step"], 1))
+                means = {k: float(np.mean(state["history"][k][-cfg.log_every:])) for k in parts}
+                per_step = (time.perf_counter() - t0) / max(state["step"], 1)
+                log.info("%s step %d/%d %s (%.2f s/step)", name, state["step"], steps,
+                         ", ".join(f"{k} {v:.4f}" for k, v in means.items()), per_step)
+                with open(out / "log.jsonl", "a") as fh:  # the training curve, one line per log_every steps
+                    fh.write(json.dumps({"stage": name, "step": state["step"], **means, "s_per_step": per_step}) + "\n")
             if state["step"] % cfg.ckpt_every == 0 or state["step"] == steps:
                 save(opt, sched, rng)
         times[name] = time.perf_counter() - t0
@@ -448,7 +452,7 @@ def _train(cfg: KeypointTrainConfig, dev, rank: int, n_ranks: int) -> dict:
 
     def ends(v):
         n = max(1, min(50, len(v) // 5))
-        return (float(np.mean(v[:n])), float(np.mean(v[-n:]))) if v else (float("nan"), float("nan"))
+        return (float(np.mean(v[:n])), float(np.mean(v[-n:]))) if v else (None, None)  # a stage this run skipped
 
     metrics = {"config": asdict(cfg), "parameters": int(sum(p.numel() for p in model.parameters())), "device": str(dev),
                "images": len(images), "pseudo_points_mean": float(np.mean([len(p) for p in labels])),
