@@ -134,6 +134,7 @@ class DetectSettings:
     max_keypoints: int = 1500
     border: int = 8
     subpixel: bool = True
+    bf16: bool = False  # network in bfloat16 autocast (CPUs with AVX512-BF16, GPUs): ~2x faster, not bit-identical
 
 
 @torch.inference_mode()
@@ -144,7 +145,10 @@ def detect_batch(model: ConvPointNet, images: list[np.ndarray], s: DetectSetting
     indices of the keypoints to keep among the NMS survivors (default: the ``max_keypoints`` strongest)."""
     dev = device or next(model.parameters()).device
     x, (h, w) = batch_tensor(images)
-    logits, desc = model(x.to(dev))
+    x = x.to(dev).contiguous(memory_format=torch.channels_last)  # NHWC: ~1.7x faster convolutions on the CPU
+    with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=s.bf16):
+        logits, desc = model(x)
+    logits, desc = logits.float(), F.normalize(desc.float(), dim=1)
     heat = heatmap(logits)[:, :h, :w]
     peaks = nms(heat, s.nms_radius).cpu().numpy()
     heat_np = heat.cpu().numpy()
@@ -193,7 +197,7 @@ def load_convpoint(path: str | Path) -> ConvPointNet:
         model.load_state_dict(ck["state_dict"])
     except Exception as e:  # damaged or foreign file
         raise ConfigError(f"{p}: not a ConvPoint checkpoint ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
-    return model.eval()
+    return model.eval().to(memory_format=torch.channels_last)  # inference layout (detect_batch feeds NHWC)
 
 
 def default_weights() -> Path:
@@ -218,7 +222,7 @@ class ConvPointExtractor:
         self.device = torch.device("cuda" if cfg.device in ("auto", "cuda") and torch.cuda.is_available() else "cpu")
         self.model.to(self.device)
         self.settings = DetectSettings(conf_thresh=cfg.conf_thresh, nms_radius=cfg.nms_radius,
-                                       max_keypoints=cfg.n_features)
+                                       max_keypoints=cfg.n_features, bf16=cfg.bf16)
 
     def _select(self, xy: np.ndarray, score: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         from vslam.features.orb import bucket
