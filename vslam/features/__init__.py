@@ -12,7 +12,6 @@ from vslam.features.base import Extractor, FeatureConfig, Features
 from vslam.features.orb import OrbExtractor
 
 
-
 def _convpoint(cfg: FeatureConfig) -> Extractor:
     from vslam.features.convpoint import ConvPointExtractor  # torch is imported only when it is used
 
