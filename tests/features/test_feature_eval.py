@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from vslam.features.evaluate import (
-    FeatureBenchConfig, held_out_images, homography_benchmark, mutual_nn, orb_method, pair_metrics, symmetric_epipolar,
+    FeatureBenchConfig, held_out_images, homography_benchmark, orb_method, pair_metrics, symmetric_epipolar,
 )
 from vslam.features.homography import random_homography, warp_points
 from vslam.features.matching import BITS_PER_L2, descriptor_rows, match_mutual
@@ -72,7 +72,7 @@ def test_float_distances_are_in_bits():
     near /= np.linalg.norm(near, axis=1, keepdims=True)
     assert len(match_mutual(d, near, ratio=0.99, max_dist=10)) == 20  # ~1 bit apart
     assert len(match_mutual(d, near, ratio=0.99, max_dist=0.01)) == 0
-    assert mutual_nn(d, near).tolist() == [[i, i] for i in range(20)]
+    assert match_mutual(d, near, ratio=None).tolist() == [[i, i] for i in range(20)]
 
 
 def test_orb_baseline_runs_on_the_benchmark_pairs():

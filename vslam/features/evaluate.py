@@ -30,6 +30,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from vslam.features.matching import match_mutual
+
 log = logging.getLogger(__name__)
 
 # a method: grey image -> (xy (N,2) float64, desc (N,D) uint8 or float32)
@@ -108,19 +110,6 @@ def convpoint_method(model, n: int, device=None) -> Method:
 # ---------------------------------------------------------------------------------------------- metrics
 
 
-def mutual_nn(da: np.ndarray, db: np.ndarray, ratio: float | None = None) -> np.ndarray:
-    """(M,2) mutual nearest-neighbour pairs (Hamming for uint8, L2 otherwise), optional ratio test."""
-    if len(da) < 2 or len(db) < 2:
-        return np.zeros((0, 2), np.int64)
-    norm = cv2.NORM_HAMMING if da.dtype == np.uint8 else cv2.NORM_L2
-    bf = cv2.BFMatcher(norm)
-    fwd = bf.knnMatch(da, db, k=2)
-    back = {m[0].queryIdx: m[0].trainIdx for m in bf.knnMatch(db, da, k=1) if m}
-    pairs = [(m[0].queryIdx, m[0].trainIdx) for m in fwd if m and back.get(m[0].trainIdx) == m[0].queryIdx
-             and (ratio is None or (len(m) == 2 and m[0].distance < ratio * m[1].distance))]
-    return np.array(pairs, np.int64).reshape(-1, 2)
-
-
 def pair_metrics(xa, da, xb, db, H: np.ndarray, shape_a, shape_b, eps: float = 3.0) -> dict[str, float]:
     """The homography-benchmark numbers of one image pair (x_b ~ H x_a)."""
     from vslam.features.homography import inside, warp_points
@@ -140,7 +129,7 @@ def pair_metrics(xa, da, xb, db, H: np.ndarray, shape_a, shape_b, eps: float = 3
         out["loc_error"] = float(close.mean()) if len(close) else float("nan")
     else:
         out["repeatability"], out["loc_error"] = 0.0, float("nan")
-    m = mutual_nn(da, db)
+    m = match_mutual(da, db, ratio=None)
     err = np.linalg.norm(warp_points(H, xa[m[:, 0]]) - xb[m[:, 1]], axis=1) if len(m) else np.zeros(0)
     shared = 0.5 * (va.sum() + vb.sum())
     out["matching_score"] = float((err <= eps).sum() / shared) if shared else 0.0
@@ -224,7 +213,7 @@ def epipolar_benchmark(methods: dict[str, Method], root: Path, cfg: FeatureBench
                 g1, g2 = (cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY) if f.image.ndim == 3 else f.image for f in (f1, f2))
                 x1, d1 = fn(g1)
                 x2, d2 = fn(g2)
-                m = mutual_nn(d1, d2, ratio=0.9)
+                m = match_mutual(d1, d2, ratio=0.9)
                 if len(m) == 0:
                     ratios.append(0.0)
                     counts.append(0)

@@ -31,9 +31,9 @@ def descriptor_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return BITS_PER_L2 * np.linalg.norm(a.astype(np.float32) - b.astype(np.float32), axis=1)
 
 
-def match_mutual(d1: np.ndarray, d2: np.ndarray, ratio: float = 0.8, max_dist: float = np.inf) -> np.ndarray:
-    """(M,2) index pairs (i in d1, j in d2): mutual nearest neighbours passing Lowe's ratio test.
-    ``max_dist`` in bits (module docstring)."""
+def match_mutual(d1: np.ndarray, d2: np.ndarray, ratio: float | None = 0.8, max_dist: float = np.inf) -> np.ndarray:
+    """(M,2) index pairs (i in d1, j in d2): mutual nearest neighbours passing Lowe's ratio test (none when
+    ``ratio`` is None: the feature benchmark scores the descriptor alone). ``max_dist`` in bits (module docstring)."""
     if len(d1) < 2 or len(d2) < 2:
         return np.zeros((0, 2), np.int64)
     norm = cv2.NORM_HAMMING if d1.dtype == np.uint8 else cv2.NORM_L2
@@ -47,7 +47,7 @@ def match_mutual(d1: np.ndarray, d2: np.ndarray, ratio: float = 0.8, max_dist: f
             bwd[m[0].queryIdx] = m[0].trainIdx
     pairs = [
         (m[0].queryIdx, m[0].trainIdx) for m in fwd
-        if len(m) == 2 and m[0].distance < ratio * m[1].distance and m[0].distance <= max_dist
+        if len(m) == 2 and (ratio is None or m[0].distance < ratio * m[1].distance) and m[0].distance <= max_dist
         and bwd[m[0].trainIdx] == m[0].queryIdx
     ]
     return np.array(pairs, dtype=np.int64).reshape(-1, 2)
