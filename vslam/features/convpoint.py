@@ -176,28 +176,18 @@ def detect_batch(model: ConvPointNet, images: list[np.ndarray], s: DetectSetting
 
 
 def save_convpoint(model: ConvPointNet, path: str | Path, meta: dict | None = None) -> Path:
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({"config": {"channels": list(model.cfg.channels), "desc_dim": model.cfg.desc_dim},
-                "state_dict": model.state_dict(), "meta": meta or {}}, p)
-    return p
+    from vslam.checkpoint import save_weights
+
+    return save_weights(model, {"channels": list(model.cfg.channels), "desc_dim": model.cfg.desc_dim}, path, meta)
 
 
 def load_convpoint(path: str | Path) -> ConvPointNet:
-    """Weights from a local file (never the network); eval mode, CPU. One-line error for a bad file."""
-    from vslam.errors import ConfigError
+    """Weights from a local file (never the network); eval mode, CPU, NHWC (the layout detect_batch feeds)."""
+    from vslam.checkpoint import load_weights
 
-    p = Path(path)
-    if not p.exists():
-        raise ConfigError(f"{p}: ConvPoint weights not found (train them with `vslam train keypoints`)")
-    try:
-        ck = torch.load(p, map_location="cpu", weights_only=True)
-        c = ck["config"]
-        model = ConvPointNet(ConvPointConfig(tuple(int(v) for v in c["channels"]), int(c["desc_dim"])))
-        model.load_state_dict(ck["state_dict"])
-    except Exception as e:  # damaged or foreign file
-        raise ConfigError(f"{p}: not a ConvPoint checkpoint ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
-    return model.eval().to(memory_format=torch.channels_last)  # inference layout (detect_batch feeds NHWC)
+    model = load_weights(path, "ConvPoint", "vslam train keypoints", lambda c: ConvPointNet(
+        ConvPointConfig(tuple(int(v) for v in c["channels"]), int(c["desc_dim"]))))
+    return model.to(memory_format=torch.channels_last)
 
 
 def default_weights() -> Path:

@@ -94,31 +94,19 @@ def preprocess(images: list[np.ndarray] | np.ndarray, size: tuple[int, int]) -> 
 
 
 def save_vladnet(model: VladNet, path: str | Path, meta: dict | None = None) -> Path:
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
+    from vslam.checkpoint import save_weights
+
     cfg = model.cfg
-    torch.save({"config": {"channels": list(cfg.channels), "clusters": cfg.clusters, "out_dim": cfg.out_dim,
-                           "input_size": list(cfg.input_size), "alpha": cfg.alpha},
-                "state_dict": model.state_dict(), "meta": meta or {}}, p)
-    return p
+    return save_weights(model, {"channels": list(cfg.channels), "clusters": cfg.clusters, "out_dim": cfg.out_dim,
+                                "input_size": list(cfg.input_size), "alpha": cfg.alpha}, path, meta)
 
 
 def load_vladnet(path: str | Path) -> VladNet:
     """Weights from a local file (never the network); eval mode, CPU."""
-    from vslam.errors import ConfigError
+    from vslam.checkpoint import load_weights
 
-    p = Path(path)
-    if not p.exists():
-        raise ConfigError(f"{p}: VLADNet weights not found (train them with `vslam train place`)")
-    try:
-        ck = torch.load(p, map_location="cpu", weights_only=True)
-        c = ck["config"]
-        model = VladNet(VladNetConfig(tuple(c["channels"]), int(c["clusters"]), int(c["out_dim"]),
-                                      tuple(c["input_size"]), float(c["alpha"])))
-        model.load_state_dict(ck["state_dict"])
-    except Exception as e:  # a damaged or foreign file: one line naming it, not torch's traceback
-        raise ConfigError(f"{p}: not a VLADNet checkpoint ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
-    return model.eval()
+    return load_weights(path, "VLADNet", "vslam train place", lambda c: VladNet(VladNetConfig(
+        tuple(c["channels"]), int(c["clusters"]), int(c["out_dim"]), tuple(c["input_size"]), float(c["alpha"]))))
 
 
 class VladNetDescriptor:
