@@ -1,9 +1,10 @@
-"""DistributedDataParallel plumbing shared by the trainers (``vslam train detector`` / ``place``).
+"""DistributedDataParallel plumbing shared by the trainers (``vslam train detector`` / ``place`` / ``keypoints``).
 
-``torchrun --nproc_per_node=N -m vslam.cli train <model> ...`` starts N ranks; each trainer calls
-``start(device)`` (NCCL on CUDA, one GPU per local rank; gloo on CPU), draws its own samples per rank, wraps
-its model in ``DistributedDataParallel`` (gradients averaged over ranks), lets rank 0 alone write, and ends with
-``check_in_sync`` (every rank must hold the same weights) and ``stop``. Without torchrun: one rank, no-ops.
+``torchrun --nproc_per_node=N -m vslam.cli train <model> ...`` starts N ranks; each trainer runs through
+``launch(device, body)`` (joins the group: NCCL on CUDA, one GPU per local rank; gloo on CPU; leaves it after),
+draws its own samples per rank, wraps its model in ``DistributedDataParallel`` (gradients averaged over ranks),
+lets rank 0 alone write, and ends with ``check_in_sync`` (every rank must hold the same weights). Without
+torchrun: one rank, no-ops.
 """
 
 from __future__ import annotations
@@ -30,6 +31,16 @@ def start(dev: torch.device) -> tuple[int, int, torch.device]:
             torch.cuda.set_device(dev)
         dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
     return rank, n, dev
+
+
+def launch(dev: torch.device, body):
+    """Join the process group, run ``body(device, rank, n_ranks)`` on this rank's device, leave the group
+    (also on an error) -> what ``body`` returned. The one entry every trainer goes through."""
+    rank, n, dev = start(dev)
+    try:
+        return body(dev, rank, n)
+    finally:
+        stop(n)
 
 
 def stop(n_ranks: int) -> None:

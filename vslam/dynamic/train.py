@@ -18,6 +18,7 @@ weights they gave before.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import logging
 import math
@@ -146,11 +147,7 @@ def train(cfg: TrainConfig) -> dict[str, dict[str, float]]:
     dev = torch.device("cuda" if cfg.device == "cuda" or (cfg.device == "auto" and torch.cuda.is_available()) else "cpu")
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
-    rank, n_ranks, dev = ddp.start(dev)
-    try:
-        return _train(cfg, dev, rank, n_ranks)
-    finally:
-        ddp.stop(n_ranks)
+    return ddp.launch(dev, functools.partial(_train, cfg))
 
 
 def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict[str, dict[str, float]]:

@@ -24,6 +24,7 @@ CPU processes: ``torchrun --nproc_per_node=N -m vslam.cli train keypoints ...`` 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import time
@@ -303,11 +304,7 @@ def train(cfg: KeypointTrainConfig) -> dict:
         cfg = toy_config(cfg)
     torch.set_num_threads(max(1, cfg.threads))
     dev = torch.device("cuda" if cfg.device in ("auto", "cuda") and torch.cuda.is_available() else "cpu")
-    rank, n_ranks, dev = ddp.start(dev)
-    try:
-        return _train(cfg, dev, rank, n_ranks)
-    finally:
-        ddp.stop(n_ranks)
+    return ddp.launch(dev, functools.partial(_train, cfg))
 
 
 def _optim(model, lr, wd, steps):

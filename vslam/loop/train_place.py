@@ -23,6 +23,7 @@ gradients are averaged, rank 0 writes); without torchrun nothing changes.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import time
@@ -222,11 +223,7 @@ def train(cfg: PlaceTrainConfig) -> dict:
         cfg = toy_config(cfg)
     torch.set_num_threads(max(1, cfg.threads))
     dev = torch.device("cuda" if cfg.device in ("auto", "cuda") and torch.cuda.is_available() else "cpu")
-    rank, n_ranks, dev = ddp.start(dev)
-    try:
-        return _train(cfg, dev, rank, n_ranks)
-    finally:
-        ddp.stop(n_ranks)
+    return ddp.launch(dev, functools.partial(_train, cfg))
 
 
 def _train(cfg: PlaceTrainConfig, dev, rank: int, n_ranks: int) -> dict:
