@@ -148,7 +148,7 @@ def detect_batch(model: ConvPointNet, images: list[np.ndarray], s: DetectSetting
     x = x.to(dev).contiguous(memory_format=torch.channels_last)  # NHWC: ~1.7x faster convolutions on the CPU
     with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=s.bf16):
         logits, desc = model(x)
-    logits, desc = logits.float(), F.normalize(desc.float(), dim=1)
+    logits, desc = logits.float(), desc.float()  # sample_descriptors re-normalises what it samples
     heat = heatmap(logits)[:, :h, :w]
     peaks = nms(heat, s.nms_radius).cpu().numpy()
     heat_np = heat.cpu().numpy()

@@ -38,12 +38,6 @@ log = logging.getLogger(__name__)
 Method = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
-def sequence_frames(kind: str, path: Path) -> list[Path]:
-    """The image files of a COCO folder or a TUM / KITTI / EuRoC sequence, in time (name) order."""
-    sub = {"coco": ".", "tum": "rgb", "kitti": "image_0", "euroc": "mav0/cam0/data"}[kind]
-    return sorted(p for p in (path / sub).rglob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
-
-
 @dataclass(frozen=True)
 class FeatureBenchConfig:
     n_keypoints: int = 1000

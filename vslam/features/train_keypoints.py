@@ -163,10 +163,14 @@ def _read_grey(path: Path, short: int) -> np.ndarray | None:
     return cv2.resize(im, (round(im.shape[1] * s), round(im.shape[0] * s)), interpolation=cv2.INTER_AREA)
 
 
+def sequence_frames(kind: str, path: Path) -> list[Path]:
+    """The image files of a COCO folder or a TUM / KITTI / EuRoC sequence, in time (name) order."""
+    sub = {"coco": ".", "tum": "rgb", "kitti": "image_0", "euroc": "mav0/cam0/data"}[kind]
+    return sorted(p for p in (path / sub).rglob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+
+
 def image_files(cfg: KeypointTrainConfig, root: Path, held_out: bool) -> dict[str, list[Path]]:
     """The real images of each source, training (before the split) or held-out (from the split on)."""
-    from vslam.features.evaluate import sequence_frames
-
     out: dict[str, list[Path]] = {}
     srcs = (("coco", cfg.coco, cfg.coco_split), ("tum", cfg.tum, cfg.tum_split), ("kitti", cfg.kitti, cfg.kitti_split),
             ("euroc", cfg.euroc, cfg.euroc_split))
