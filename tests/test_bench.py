@@ -111,5 +111,5 @@ def test_make_dynamic_rows_name_their_sequence(tmp_path):
         _composited({"data": "tum/x", "walkers": 2}, tmp_path)
     done = tmp_path / "_data" / "x-people2-seed1"
     done.mkdir(parents=True)
-    (done / "rgb.txt").write_text("# already composited\n")  # written once, then reused as it is
-    assert _composited({"data": "tum/x", "people": 2, "seed": 1}, tmp_path) == done.resolve()
+    (done / "boxes.txt").write_text("# already composited\n")  # written last, once, then reused as it is
+    assert _composited({"data": "tum/x", "people": 2, "seed": 1}, tmp_path) == ("tum", done.resolve())

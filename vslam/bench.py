@@ -44,7 +44,7 @@ PER_FRAME = ("features", "depth", "pose", "total")  # run on every frame: median
 @dataclass(frozen=True)
 class BenchRow:
     name: str
-    kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch", "place", "features"] = "run"
+    kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch", "place", "features", "detector"] = "run"
     config: str = ""  # pipeline YAML, relative to the suite file's folder's parent (the repo root) or absolute
     set: tuple[str, ...] = ()  # KEY=VALUE overrides
     note: str = ""
@@ -211,6 +211,18 @@ def _job_features(overrides: dict[str, Any]) -> dict[str, Any]:
     return {**res, "seconds": time.perf_counter() - t0, "peak_rss_mb": _peak_rss_mb()}
 
 
+def _job_detector(overrides: dict[str, Any]) -> dict[str, Any]:
+    """Issue 5: the attention ablation (``set``: weights=[files], all trained with one recipe; ``dynamic.evaluate``)."""
+    from vslam.dynamic.evaluate import evaluate_detectors
+
+    t0 = time.perf_counter()
+    weights = [str(w) for w in overrides.get("weights", ())]
+    if not weights:
+        raise ConfigError("bench kind detector needs set: weights=[file, ...]")
+    res = evaluate_detectors(weights, threads=int(overrides.get("threads", 2)))
+    return {**res, "seconds": time.perf_counter() - t0, "peak_rss_mb": _peak_rss_mb()}
+
+
 def execute_job(kind: str, config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
     """One job in this process -> its result row (``vslam.batch`` calls this in its worker processes)."""
     if kind == "fusion":
@@ -221,6 +233,8 @@ def execute_job(kind: str, config: str | None, overrides: dict[str, Any], out_di
         return _job_place(overrides)
     if kind == "features":
         return _job_features(overrides)
+    if kind == "detector":
+        return _job_detector(overrides)
     fn = _job_run if kind == "run" else _job_render
     return fn(config, overrides, out_dir)
 
@@ -356,14 +370,15 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
         cfg = str(Path(row.config) if Path(row.config).is_absolute() else root / row.config) if row.config else None
         over = parse_overrides(list(row.set))
         if row.make_dynamic:
-            over = deep_merge(over, {"dataset": {"kind": "tum", "path": str(_composited(row.make_dynamic, jobs_dir))}})
+            kind, path = _composited(row.make_dynamic, jobs_dir)
+            over = deep_merge(over, {"dataset": {"kind": kind, "path": str(path)}})
         if row.kind == "batch":  # runs its own serial / pool / Ray passes
             result = batch_row(cfg, over, row.grid, row.workers, str(jobs_dir / row.name))
             kept[row.name] = {"result": _json_safe(result), "measured": now, "repeat": 1, "machine": machine}
         elif row.kind == "fusion":  # one seeded, deterministic run: repeating it only costs time
             plan.append((row, [Job("fusion", row.experiment, over, str(jobs_dir / row.name))]))
         else:  # a place / features row is deterministic and reports no timing that repeats would steady
-            n = 1 if row.kind in ("place", "features") else max(1, repeat)
+            n = 1 if row.kind in ("place", "features", "detector") else max(1, repeat)
             plan.append((row, [Job(row.kind, cfg, over, str(jobs_dir / f"{row.name}-{i}")) for i in range(n)]))
     results = iter(run_jobs([j for _, jobs in plan for j in jobs], workers, ray))
     parallel = {"parallel": workers if ray is None else f"ray:{workers}"} if workers > 1 or ray is not None else {}
@@ -381,20 +396,24 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
     return output
 
 
-def _composited(spec: dict[str, Any], jobs_dir: Path) -> Path:
-    """The make-dynamic sequence a row names, written on first use (seeded: the same spec, the same frames)."""
-    from vslam.dynamic.composite import MakeDynamicConfig, make_dynamic
+def _composited(spec: dict[str, Any], jobs_dir: Path) -> tuple[str, Path]:
+    """(dataset kind, folder) of the make-dynamic sequence a row names, written on first use (seeded: the same
+    spec, the same frames)."""
+    from vslam.data.kitti import is_kitti_layout
+    from vslam.dynamic.composite import make_dynamic, walker_config
     from vslam.paths import data_root
 
     unknown = set(spec) - {"data", "people", "seed", "coco"}
     if unknown or "data" not in spec:
         raise ConfigError(f"make_dynamic: needs 'data' and takes people, seed, coco; got {sorted(spec)}")
-    people, seed = int(spec.get("people", 3)), int(spec.get("seed", 0))
-    out = (jobs_dir / "_data" / f"{Path(str(spec['data'])).name}-people{people}-seed{seed}").resolve()
-    if not (out / "rgb.txt").is_file():
-        make_dynamic(data_root() / str(spec["data"]), out, data_root() / str(spec.get("coco", "coco128")),
-                     MakeDynamicConfig(n_people=people, seed=seed))
-    return out
+    src = data_root() / str(spec["data"])
+    cfg = walker_config(src, int(spec["people"]) if "people" in spec else None, int(spec.get("seed", 0)))
+    kitti = is_kitti_layout(src)
+    out = (jobs_dir / "_data" / f"{src.name}-people{cfg.n_people}-seed{cfg.seed}").resolve()
+    seq = out / "sequences" / src.name if kitti else out
+    if not (seq / "boxes.txt").is_file():  # written last
+        seq = make_dynamic(src, out, data_root() / str(spec.get("coco", "coco128")), cfg)
+    return ("kitti" if kitti else "tum"), seq
 
 
 def _sweep_rows(rows: list[BenchRow], sweep: dict[str, list[Any]]) -> list[BenchRow]:
@@ -441,7 +460,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     ]
     for row, e in entries:
         r, repeat = e["result"], int(e["repeat"])
-        if row.kind in ("fusion", "imu_preint", "batch", "place", "features"):  # own tables below
+        if row.kind in ("fusion", "imu_preint", "batch", "place", "features", "detector"):  # own tables below
             continue
         if "error" in r:
             lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | | | | {row.target} |")
@@ -471,6 +490,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     lines += _imu_table([(row, e["result"]) for row, e in entries if row.kind == "imu_preint"])
     lines += _place_table([(row, e["result"]) for row, e in entries if row.kind == "place"])
     lines += _features_table([(row, e["result"]) for row, e in entries if row.kind == "features"])
+    lines += _detector_table([(row, e["result"]) for row, e in entries if row.kind == "detector"])
     lines += batch_table([(row, e["result"]) for row, e in entries if row.kind == "batch"])
     notes = [f"- **{row.name}**: {row.note}" for row, _ in entries if row.note]
     if notes:
@@ -570,6 +590,20 @@ def _features_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     lines = []
     for row, r in rows:
         lines += ["", f"## Keypoints: ConvPoint vs ORB vs SIFT (issue 4, `{row.name}`)", ""]
+        if "error" in r:
+            lines.append(f"**failed**: {r['error']}")
+            continue
+        lines += [*format_table(r), "", f"Target: {row.target}"]
+    return lines
+
+
+def _detector_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
+    """Issue 5: the attention ablation on the held-out sets, one recipe, one seed."""
+    from vslam.dynamic.evaluate import format_table
+
+    lines = []
+    for row, r in rows:
+        lines += ["", f"## Dynamic-object detector: attention ablation (issue 5, `{row.name}`)", ""]
         if "error" in r:
             lines.append(f"**failed**: {r['error']}")
             continue

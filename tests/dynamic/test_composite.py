@@ -96,3 +96,44 @@ def test_make_dynamic_on_teddy_reads_back(tmp_path):
             ys, xs = np.nonzero(f.dynamic_mask)
             b = f.boxes  # inclusive pixel boxes cover the mask
             assert len(b) >= 1 and b[:, 0].min() <= xs.min() and b[:, 2].max() >= xs.max()
+
+
+def test_road_walkers_stand_on_the_road_ahead():
+    """KITTI walkers: feet ``camera_height`` below the camera of the frame they belong to, 6-14 m ahead."""
+    from vslam.dynamic.composite import place_walkers_on_road
+
+    poses = np.tile(np.eye(4), (40, 1, 1))
+    poses[:, 2, 3] = np.arange(40) * 0.8  # driving along +z (camera y points down, KITTI convention)
+    cfg = MakeDynamicConfig.for_kitti(n_people=4, seed=3)
+    walkers = place_walkers_on_road([CUT], poses, cfg, np.random.default_rng(3))
+    assert [f for f, _ in walkers] == [0, 10, 20, 30]
+    for f, b in walkers:
+        corners = b.corners_world(0.0, poses[f][:3, 3])
+        feet_y = corners[2:, 1]  # bottom-right, bottom-left
+        np.testing.assert_allclose(feet_y, cfg.camera_height, atol=1e-9)
+        ahead = b.centre[2] - poses[f][2, 3]
+        assert 6.0 <= ahead <= 14.0 and 1.0 <= abs(b.centre[0]) <= 4.0
+
+
+KITTI07 = data_root() / "kitti" / "sequences" / "07"
+
+
+@pytest.mark.skipif(not (KITTI07.is_dir() and COCO.is_dir()), reason="KITTI 07 / COCO128 not in $VSLAM_DATA")
+def test_make_dynamic_on_kitti_reads_back_with_masks(tmp_path):
+    from vslam.data.kitti import KittiSequence
+
+    out = make_dynamic(KITTI07, tmp_path / "k", COCO, MakeDynamicConfig.for_kitti(n_people=2, seed=0, max_frames=8))
+    assert out == tmp_path / "k" / "sequences" / "07"
+    seq, src = KittiSequence(out), KittiSequence(KITTI07)
+    assert len(seq) == 8
+    np.testing.assert_allclose(seq.groundtruth().poses, src.groundtruth().poses[:8])
+    seen = 0
+    for i in range(8):
+        f, g = seq.frame(i), src.frame(i)
+        changed = f.image != g.image
+        grown = cv2.dilate(f.dynamic_mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        assert not (changed & ~grown).any()  # the composite only touched the walkers
+        seen += int(f.dynamic_mask.sum())
+    assert seen > 1000  # the first walker is in view from frame 0
+    rows = [ln.split() for ln in (out / "boxes.txt").read_text().splitlines() if not ln.startswith("#")]
+    assert rows and all(len(r) == 6 for r in rows)

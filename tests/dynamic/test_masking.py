@@ -69,7 +69,7 @@ def test_config_errors():
     with pytest.raises(ConfigError):
         DynamicConfig(source="yolo")  # type: ignore[arg-type]
     with pytest.raises(ConfigError):
-        DynamicFilter(DynamicConfig(enabled=True, source="detector"), CAM)  # no weights
+        DynamicFilter(DynamicConfig(enabled=True, source="detector", weights="no/such/detector.pt"), CAM)
 
 
 def test_slam_never_tracks_or_maps_masked_keypoints():

@@ -155,6 +155,8 @@ class KittiSequence(Sequence):
             self._image_list(seq_dir, right_id, times_path, t_lines, " (needed for sensor='stereo')") if sensor == "stereo" else None
         )
         self.calibration = self._read_calibration(require_file(seq_dir / "calib.txt", "calib.txt"), left_id, right_id)
+        # vslam make-dynamic writes the exact masks of the people it composited (255 = dynamic) beside the images
+        self._masks = self._image_list(seq_dir, f"mask_{left_id}", times_path, t_lines, "") if (seq_dir / f"mask_{left_id}").is_dir() else None
 
         self._gt: Trajectory | None = None
         if poses_path is not None:
@@ -167,9 +169,10 @@ class KittiSequence(Sequence):
             T_world_k0[:, :3, :4] = v[: len(self._t)].reshape(-1, 3, 4)
             self._gt = Trajectory(self._t, T_world_k0 @ self._T_k0_cam0)
 
-    def _image_list(self, seq_dir: Path, cam_id: int, times_path: Path, t_lines: np.ndarray, why: str) -> list[Path]:
-        """image_<cam_id>/NNNNNN.png for every line of times.txt; the counts must agree."""
-        folder = require_dir(seq_dir / f"image_{cam_id}", f"image_{cam_id}{why}")
+    def _image_list(self, seq_dir: Path, cam_id: int | str, times_path: Path, t_lines: np.ndarray, why: str) -> list[Path]:
+        """image_<cam_id>/NNNNNN.png (or the folder ``cam_id`` names) for every line of times.txt; the counts must agree."""
+        name = cam_id if isinstance(cam_id, str) else f"image_{cam_id}"
+        folder = require_dir(seq_dir / name, f"{name}{why}")
         n_img = sum(1 for p in folder.iterdir() if p.suffix == ".png")
         if n_img != len(self._t):
             raise DatasetError(times_path, f"lists {len(self._t)} times but {folder} holds {n_img} .png images")
@@ -225,7 +228,15 @@ class KittiSequence(Sequence):
         right = self._imread(self._right[i]) if self._right is not None else None
         if image is None or (self._right is not None and right is None):
             return None
-        return Frame(index=i, timestamp=float(self._t[i]), image=image, right=right, T_world_cam=self.frame_pose(i))
+        mask = None
+        if self._masks is not None:
+            m = cv2.imread(str(self._masks[i]), cv2.IMREAD_GRAYSCALE)
+            if m is None:
+                logger.warning("%s: mask does not decode; frame skipped", self._masks[i])
+                return None
+            mask = m > 127
+        return Frame(index=i, timestamp=float(self._t[i]), image=image, right=right, T_world_cam=self.frame_pose(i),
+                     dynamic_mask=mask)
 
     def _imread(self, path: Path) -> np.ndarray | None:
         img = cv2.imread(str(path), self._flags)

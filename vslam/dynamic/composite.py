@@ -14,10 +14,12 @@ import argparse
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import cv2
 import numpy as np
 
+from vslam.data.types import Frame
 from vslam.errors import DatasetError
 
 log = logging.getLogger(__name__)
@@ -98,14 +100,17 @@ def composite(image: np.ndarray, depth: np.ndarray, K: np.ndarray, T_world_cam: 
     return img, dep, mask, np.array(boxes, np.float64).reshape(-1, 4)
 
 
-def person_cutouts(coco_root: str | Path, min_height_px: int = 120, limit: int = 20, person_id: str = "1",
-                   min_aspect: float = 1.8) -> list[np.ndarray]:
-    """BGRA crops of the largest COCO128 person instances, alpha from their polygons. ``segments/`` rows are
-    "category x1 y1 x2 y2 ..." normalised, with the original COCO category ids (1 = person, unlike ``labels/``).
-    Only whole, upright figures (height / width >= ``min_aspect``): close-up portraits would become giant heads."""
+def person_instances(coco_root: str | Path, min_height_px: int = 120, min_aspect: float = 1.8, whole: bool = True,
+                     person_id: str = "1", exclude: frozenset[str] = frozenset()) -> list[tuple[str, np.ndarray]]:
+    """(image stem, BGRA crop) of COCO128 person instances, alpha from their polygons, largest first.
+    ``segments/`` rows are "category x1 y1 x2 y2 ..." normalised, with the original COCO category ids (1 =
+    person, unlike ``labels/``). ``whole``: only instances that do not touch the image border; ``min_aspect``:
+    height / width at least this (upright figures); images whose stem is in ``exclude`` are skipped."""
     root = Path(coco_root)
     found = []
     for seg in sorted((root / "segments" / "train2017").glob("*.txt")):
+        if seg.stem in exclude:
+            continue
         img = None
         for line in seg.read_text().splitlines():
             v = line.split()
@@ -117,17 +122,31 @@ def person_cutouts(coco_root: str | Path, min_height_px: int = 120, limit: int =
                     break
             h, w = img.shape[:2]
             poly = (np.array(v[1:], np.float64).reshape(-1, 2) * [w, h]).astype(np.int32)
-            x0, y0 = poly.min(0)
-            x1, y1 = poly.max(0) + 1
-            if y1 - y0 < min_height_px or y1 - y0 < min_aspect * (x1 - x0) or x0 <= 0 or y0 <= 0 or x1 >= w or y1 >= h:
+            x0, y0 = np.maximum(poly.min(0), 0)
+            x1, y1 = np.minimum(poly.max(0) + 1, [w, h])
+            if y1 - y0 < min_height_px or y1 - y0 < min_aspect * (x1 - x0):
+                continue
+            if whole and (x0 <= 0 or y0 <= 0 or x1 >= w or y1 >= h):
                 continue
             a = np.zeros((h, w), np.uint8)
             cv2.fillPoly(a, [poly], 255)
-            found.append((int(a.sum()), np.dstack([img, a])[y0:y1, x0:x1].copy()))
-    if not found:
-        raise DatasetError(root / "segments" / "train2017", f"no whole person instance of at least {min_height_px} px")
+            found.append((int(a.sum()), seg.stem, np.dstack([img, a])[y0:y1, x0:x1].copy()))
     found.sort(key=lambda x: -x[0])
+    return [(stem, c) for _, stem, c in found]
+
+
+def person_cutouts(coco_root: str | Path, limit: int = 20) -> list[np.ndarray]:
+    """The benchmark's walkers: the ``limit`` largest whole, upright COCO128 person instances (close-up
+    portraits would become giant heads)."""
+    found = person_instances(coco_root)
+    if not found:
+        raise DatasetError(Path(coco_root) / "segments" / "train2017", "no whole person instance of at least 120 px")
     return [c for _, c in found[:limit]]
+
+
+def benchmark_stems(coco_root: str | Path, limit: int = 20) -> frozenset[str]:
+    """COCO128 images whose people walk through the dynamic benchmark: the detector never trains on them."""
+    return frozenset(stem for stem, _ in person_instances(coco_root)[:limit])
 
 
 @dataclass(frozen=True)
@@ -139,6 +158,15 @@ class MakeDynamicConfig:
     height: tuple[float, float] = (1.2, 1.7)  # billboard height, metres
     speed: tuple[float, float] = (0.3, 0.8)  # m/s, peak walking speed
     amp: tuple[float, float] = (0.4, 0.8)  # metres, half the walk
+    camera_height: float = 1.65  # KITTI: metres from the camera down to the road (walkers stand on it)
+    max_range: float = 25.0  # KITTI: walkers further than this are not drawn (no depth to hide them behind houses)
+
+    @classmethod
+    def for_kitti(cls, n_people: int = 6, seed: int = 0, max_frames: int | None = None) -> "MakeDynamicConfig":
+        """Walkers for a driving sequence: people-sized, crossing the road 6-14 m ahead of where the car is when
+        each one appears, at walking speed."""
+        return cls(n_people=n_people, seed=seed, max_frames=max_frames, distance=(6.0, 14.0), height=(1.6, 1.85),
+                   speed=(1.0, 1.5), amp=(1.0, 2.0))
 
 
 def place_people(cutouts: list[np.ndarray], T_world_cam0: np.ndarray, cfg: MakeDynamicConfig, rng: np.random.Generator) -> list[Billboard]:
@@ -156,37 +184,133 @@ def place_people(cutouts: list[np.ndarray], T_world_cam0: np.ndarray, cfg: MakeD
     return boards
 
 
-def make_dynamic(seq_dir: str | Path, out_dir: str | Path, coco_root: str | Path, cfg: MakeDynamicConfig = MakeDynamicConfig()) -> Path:
-    """Composite walking people into the TUM RGB-D sequence ``seq_dir``; write the TUM layout + masks to ``out_dir``."""
-    import shutil
+def place_walkers_on_road(cutouts: list[np.ndarray], poses: np.ndarray, cfg: MakeDynamicConfig,
+                          rng: np.random.Generator) -> list[tuple[int, Billboard]]:
+    """(first frame, billboard): walker k appears at frame ``k * n / n_people`` (spread along the drive), standing
+    on the road (``camera_height`` below that camera) ``distance`` ahead, 1-4 m to either side, crossing."""
+    out = []
+    n = len(poses)
+    for k in range(cfg.n_people):
+        f = int(k * n / max(1, cfg.n_people))
+        R, C = poses[f][:3, :3], poses[f][:3, 3]
+        down, fwd, right = R[:, 1], R[:, 2], R[:, 0]
+        h = rng.uniform(*cfg.height)
+        centre = C + rng.uniform(*cfg.distance) * fwd + rng.choice([-1, 1]) * rng.uniform(1.0, 4.0) * right + (cfg.camera_height - h / 2) * down
+        amp = rng.uniform(*cfg.amp)
+        out.append((f, Billboard(cutouts[int(rng.integers(len(cutouts)))], centre, -down, h, right, amp,
+                                 rng.uniform(*cfg.speed) / amp, rng.uniform(0, 2 * np.pi))))
+    return out
 
-    from vslam.data.synthetic.writer import depth_to_png
+
+def composited_kitti_frames(seq_dir: str | Path, coco_root: str | Path, cfg: MakeDynamicConfig) -> Iterator[tuple[Frame, np.ndarray, np.ndarray, np.ndarray]]:
+    """The KITTI sequence ``seq_dir`` (grey, mono) with people crossing the road: per frame (original frame,
+    composited grey image, person mask, boxes). No depth is recorded, so the scene occludes nothing: a walker is
+    drawn when in front of the camera and nearer than ``max_range`` (they stand on the open road ahead)."""
+    from vslam.data.kitti import KittiSequence
+
+    seq = KittiSequence(seq_dir, sensor="mono")
+    gt = seq.groundtruth()
+    if gt is None:
+        raise DatasetError(seq_dir, "make-dynamic needs the ground-truth poses (poses/NN.txt)")
+    n = len(seq) if cfg.max_frames is None else min(len(seq), cfg.max_frames)
+    walkers = place_walkers_on_road(person_cutouts(coco_root), gt.poses[:n], cfg, np.random.default_rng(cfg.seed))
+    K = seq.calibration.cam0.K
+    for i in range(n):
+        fr = seq.frame(i)
+        grey = fr.image
+        C = gt.poses[i][:3, 3]
+        active = [b for _, b in walkers if np.linalg.norm(b.centre - C) < cfg.max_range]  # (nothing occludes them)
+        t = float(seq.timestamps()[i])
+        img, _, mask, boxes = composite(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), np.zeros(grey.shape, np.float32), K,
+                                        gt.poses[i], t, active)
+        yield fr, cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), mask, boxes
+
+
+def composited_frames(seq_dir: str | Path, coco_root: str | Path, cfg: MakeDynamicConfig = MakeDynamicConfig()) -> Iterator[tuple[Frame, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """The TUM RGB-D sequence ``seq_dir`` with walking people: per frame (original frame, composited image BGR,
+    depth metres, person mask (H,W) bool, person boxes (K,4) x1,y1,x2,y2 exclusive). Frames before the first
+    ground-truth pose pass through unchanged (the walkers are placed ahead of the first posed camera)."""
     from vslam.data.tum import TumRgbdSequence
 
     seq = TumRgbdSequence(seq_dir)
     cam = seq.calibration.cam0
     if cam.is_distorted:
         raise DatasetError(seq_dir, "make-dynamic renders with a pinhole model; the images must be undistorted (freiburg3)")
-    out = Path(out_dir)
-    for sub in ("rgb", "depth", "mask"):
-        (out / sub).mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
     cutouts = person_cutouts(coco_root)
     boards: list[Billboard] | None = None
-    t0 = None
-    rgb_lines, depth_lines, mask_lines, box_lines = [], [], [], []
+    t0 = 0.0
     for i, fr in enumerate(seq):
         if cfg.max_frames is not None and i >= cfg.max_frames:
             break
         img = fr.image if fr.image.ndim == 3 else cv2.cvtColor(fr.image, cv2.COLOR_GRAY2BGR)
         depth = fr.depth if fr.depth is not None else np.zeros(img.shape[:2], np.float32)
-        mask = np.zeros(img.shape[:2], bool)
+        mask, boxes = np.zeros(img.shape[:2], bool), np.zeros((0, 4))
         if fr.T_world_cam is not None:
             if boards is None:
                 boards, t0 = place_people(cutouts, fr.T_world_cam, cfg, rng), fr.timestamp
             img, depth, mask, boxes = composite(img, depth, cam.K, fr.T_world_cam, fr.timestamp - t0, boards)
-            box_lines += [f"{fr.timestamp:.6f} {k} {b[0]:.0f} {b[1]:.0f} {b[2] - 1:.0f} {b[3] - 1:.0f}\n" for k, b in enumerate(boxes)]
+        yield fr, img, depth, mask, boxes
+
+
+def make_dynamic(seq_dir: str | Path, out_dir: str | Path, coco_root: str | Path, cfg: MakeDynamicConfig = MakeDynamicConfig()) -> Path:
+    """Composite walking people into the TUM RGB-D or KITTI sequence ``seq_dir``; write its layout + masks to
+    ``out_dir``. Returns the folder to give ``dataset.path`` (for KITTI ``out_dir/sequences/NN``)."""
+    from vslam.data.kitti import is_kitti_layout
+
+    if is_kitti_layout(Path(seq_dir)):
+        return _make_dynamic_kitti(Path(seq_dir), Path(out_dir), coco_root, cfg)
+    return _make_dynamic_tum(seq_dir, out_dir, coco_root, cfg)
+
+
+def _box_lines(stamp: str, boxes: np.ndarray) -> list[str]:
+    return [f"{stamp} {k} {b[0]:.0f} {b[1]:.0f} {b[2] - 1:.0f} {b[3] - 1:.0f}\n" for k, b in enumerate(boxes)]
+
+
+BOXES_HEADER = "# timestamp object_id x1 y1 x2 y2 (inclusive pixels)\n"
+
+
+def _make_dynamic_kitti(seq_dir: Path, out_dir: Path, coco_root: str | Path, cfg: MakeDynamicConfig) -> Path:
+    import shutil
+
+    from vslam.data.kitti import resolve_sequence_dir
+
+    src, poses = resolve_sequence_dir(seq_dir, None)
+    out = out_dir / "sequences" / src.name
+    for sub in ("image_0", "mask_0"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    box_lines, n = [], 0
+    for fr, img, mask, boxes in composited_kitti_frames(src, coco_root, cfg):
+        cv2.imwrite(str(out / "image_0" / f"{fr.index:06d}.png"), img)
+        cv2.imwrite(str(out / "mask_0" / f"{fr.index:06d}.png"), mask.astype(np.uint8) * 255)
+        box_lines += _box_lines(f"{fr.timestamp:.6f}", boxes)
+        n += 1
+    times = (src / "times.txt").read_text().splitlines(keepends=True)
+    (out / "times.txt").write_text("".join(times[:n]))
+    shutil.copy(src / "calib.txt", out / "calib.txt")
+    (out_dir / "poses").mkdir(parents=True, exist_ok=True)
+    assert poses is not None  # composited_kitti_frames refused a sequence without
+    rows = poses.read_text().splitlines(keepends=True)
+    (out_dir / "poses" / f"{src.name}.txt").write_text("".join(rows[:n]))
+    (out / "boxes.txt").write_text(BOXES_HEADER + "".join(box_lines))  # last: marks a complete folder
+    log.info("make-dynamic: %d KITTI frames, %d people -> %s", n, cfg.n_people, out)
+    return out
+
+
+def _make_dynamic_tum(seq_dir: str | Path, out_dir: str | Path, coco_root: str | Path, cfg: MakeDynamicConfig) -> Path:
+    import shutil
+
+    from vslam.data.synthetic.writer import depth_to_png
+    from vslam.data.tum import TumRgbdSequence
+
+    cam = TumRgbdSequence(seq_dir).calibration.cam0
+    out = Path(out_dir)
+    for sub in ("rgb", "depth", "mask"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    rgb_lines, depth_lines, mask_lines, box_lines = [], [], [], []
+    for fr, img, depth, mask, boxes in composited_frames(seq_dir, coco_root, cfg):
         stamp = f"{fr.timestamp:.6f}"
+        box_lines += _box_lines(stamp, boxes)
         cv2.imwrite(str(out / "rgb" / f"{stamp}.png"), img)
         cv2.imwrite(str(out / "depth" / f"{stamp}.png"), depth_to_png(depth))
         cv2.imwrite(str(out / "mask" / f"{stamp}.png"), mask.astype(np.uint8) * 255)
@@ -196,21 +320,31 @@ def make_dynamic(seq_dir: str | Path, out_dir: str | Path, coco_root: str | Path
     header = "# vslam make-dynamic: {} composited from {}\n# timestamp filename\n"
     for name, lines in (("rgb.txt", rgb_lines), ("depth.txt", depth_lines), ("mask.txt", mask_lines)):
         (out / name).write_text(header.format(name, seq_dir) + "".join(lines))
-    (out / "boxes.txt").write_text("# timestamp object_id x1 y1 x2 y2 (inclusive pixels)\n" + "".join(box_lines))
     shutil.copy(Path(seq_dir) / "groundtruth.txt", out / "groundtruth.txt")
     (out / "calibration.yaml").write_text(f"width: {cam.width}\nheight: {cam.height}\nfx: {cam.fx!r}\nfy: {cam.fy!r}\n"
                                           f"cx: {cam.cx!r}\ncy: {cam.cy!r}\ndistortion_model: none\ndistortion: []\n"
                                           f"depth_scale: 5000.0\n")
+    (out / "boxes.txt").write_text(BOXES_HEADER + "".join(box_lines))  # last: marks a complete folder
     log.info("make-dynamic: %d frames, %d people -> %s", len(rgb_lines), cfg.n_people, out)
     return out
 
 
+def walker_config(data: Path, people: int | None, seed: int, max_frames: int | None = None) -> MakeDynamicConfig:
+    """The walkers for ``data``: indoor ones for TUM, road crossers for KITTI."""
+    from vslam.data.kitti import is_kitti_layout
+
+    if is_kitti_layout(data):
+        return MakeDynamicConfig.for_kitti(6 if people is None else people, seed, max_frames)
+    return MakeDynamicConfig(n_people=3 if people is None else people, seed=seed, max_frames=max_frames)
+
+
 def add_cli(sub: argparse._SubParsersAction) -> None:
-    m = sub.add_parser("make-dynamic", help="composite walking COCO people into a TUM RGB-D sequence (+ masks)")
-    m.add_argument("data", help="TUM RGB-D sequence folder (undistorted camera, e.g. freiburg3); relative paths also under $VSLAM_DATA")
-    m.add_argument("out", help="output folder (TUM layout + mask/ + boxes.txt)")
+    m = sub.add_parser("make-dynamic", help="composite walking COCO people into a TUM RGB-D or KITTI sequence (+ masks)")
+    m.add_argument("data", help="TUM RGB-D sequence folder (undistorted camera, e.g. freiburg3) or KITTI sequence "
+                   "folder with poses; relative paths also under $VSLAM_DATA")
+    m.add_argument("out", help="output folder (the input's layout + masks + boxes.txt)")
     m.add_argument("--coco", default="coco128", help="COCO128 folder with segments/ (relative: under $VSLAM_DATA)")
-    m.add_argument("--people", type=int, default=3)
+    m.add_argument("--people", type=int, help="walkers (default 3 for TUM, 6 spread along a KITTI drive)")
     m.add_argument("--seed", type=int, default=0)
     m.add_argument("--max-frames", type=int)
     m.set_defaults(fn=cmd_make_dynamic)
@@ -222,7 +356,6 @@ def cmd_make_dynamic(args: argparse.Namespace) -> int:
     def find(p: str) -> Path:
         return Path(p) if Path(p).exists() or Path(p).is_absolute() else data_root() / p
 
-    out = make_dynamic(find(args.data), args.out, find(args.coco),
-                       MakeDynamicConfig(n_people=args.people, seed=args.seed, max_frames=args.max_frames))
+    out = make_dynamic(find(args.data), args.out, find(args.coco), walker_config(find(args.data), args.people, args.seed, args.max_frames))
     print(f"wrote {out}")
     return 0

@@ -52,7 +52,8 @@ class DynamicConfig:
     classes: tuple[str, ...] = ("person", "bicycle", "car", "motorcycle", "bus", "truck", "chair")
     dilation_px: int = 4  # mask / box growth: keypoints on an object's outline have an ORB patch on it
     score_threshold: float = 0.35  # detector boxes below this score are ignored
-    weights: str = ""  # detector checkpoint (source=detector)
+    weights: str = ""  # detector checkpoint (source=detector); "" = the shipped models/detector_esea.pt
+    img_size: int = 0  # detector input: the image's longer side resized to this; 0 = the size it was trained at
     geometric: GeometricConfig = field(default_factory=GeometricConfig)
 
     def __post_init__(self) -> None:
@@ -60,3 +61,5 @@ class DynamicConfig:
             raise ConfigError(f"slam.dynamic.source must be detector, gt_mask or none, got {self.source!r}")
         if self.dilation_px < 0:
             raise ConfigError("slam.dynamic.dilation_px must be >= 0")
+        if self.img_size < 0 or self.img_size % 32:
+            raise ConfigError(f"slam.dynamic.img_size must be 0 or a positive multiple of 32, got {self.img_size}")

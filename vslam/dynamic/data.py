@@ -36,14 +36,18 @@ def _read_names(root: Path) -> list[str]:
     return [names[i] for i in sorted(names)] if isinstance(names, dict) else list(names)
 
 
-def load_yolo(root: str | Path, split: str, classes: tuple[str, ...], max_side: int = 640) -> list[Sample]:
+def load_yolo(root: str | Path, split: str, classes: tuple[str, ...], max_side: int = 640,
+              skip: frozenset[str] = frozenset()) -> list[Sample]:
     """``root/images/<split>/*.jpg`` with ``root/labels/<split>/*.txt`` (class cx cy w h, normalised).
-    Boxes of classes not in ``classes`` are dropped; images are downscaled so the longer side is ``max_side``."""
+    Boxes of classes not in ``classes`` are dropped; images are downscaled so the longer side is ``max_side``;
+    images whose stem is in ``skip`` are left out."""
     root = Path(root)
     names = _read_names(root)
     to_ours = {i: classes.index(n) for i, n in enumerate(names) if n in classes}
     out = []
     for img_path in sorted((root / "images" / split).glob("*.jpg")):
+        if img_path.stem in skip:
+            continue
         img = cv2.imread(str(img_path), cv2.IMREAD_COLOR)
         if img is None:
             log.warning("%s: does not decode; skipped", img_path)

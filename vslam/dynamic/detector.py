@@ -85,13 +85,21 @@ class Detector:
         return Detections(b, s.numpy().astype(np.float64), ids, np.array([self.names[i] for i in ids], dtype=object))
 
 
-def save_checkpoint(path: str | Path, model: YoloDetector, names: list[str], **extra: object) -> Path:
+def save_checkpoint(path: str | Path, model: YoloDetector, names: list[str], half: bool = False, **extra: object) -> Path:
+    """``half``: float tensors stored as float16 (a YOLOv8n is 12 MB in float32, 6 MB in float16; loading casts
+    back to float32, outputs change by ~1e-3 of a score)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     tmp = p.with_suffix(p.suffix + ".tmp")
-    torch.save({"model": model.state_dict(), "config": asdict(model.cfg), "names": list(names), **extra}, tmp)
+    state = {k: v.half() if half and v.is_floating_point() else v for k, v in model.state_dict().items()}
+    torch.save({"model": state, "config": asdict(model.cfg), "names": list(names), **extra}, tmp)
     tmp.replace(p)  # atomic: an interrupted save never leaves a broken checkpoint behind
     return p
+
+
+def default_weights() -> Path:
+    """The shipped detector (models/detector_esea.pt in the checkout; its card is models/README.md)."""
+    return Path(__file__).resolve().parents[2] / "models" / "detector_esea.pt"
 
 
 def load_model(path: str | Path) -> tuple[YoloDetector, dict]:
@@ -99,7 +107,7 @@ def load_model(path: str | Path) -> tuple[YoloDetector, dict]:
         raise ConfigError(f"{path}: detector weights not found (slam.dynamic.weights)")
     ckpt = torch.load(Path(path), map_location="cpu", weights_only=True)  # weights only: a config path never runs code
     model = YoloDetector(DetectorConfig(**ckpt["config"]))
-    model.load_state_dict(ckpt["model"])
+    model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in ckpt["model"].items()})
     return model, ckpt
 
 

@@ -10,7 +10,6 @@ from vslam.data.types import Frame, PinholeCamera
 from vslam.dynamic.config import DynamicConfig
 from vslam.dynamic.masking import dilate, in_boxes, in_mask
 from vslam.dynamic.motion import GeometricCheck
-from vslam.errors import ConfigError
 from vslam.features.base import Features
 
 log = logging.getLogger(__name__)
@@ -26,11 +25,11 @@ class DynamicFilter:
         self.geo = GeometricCheck(cfg.geometric, cam) if cfg.geometric.enabled else None
         self.detector = detector
         if cfg.source == "detector" and detector is None:
-            if not cfg.weights:
-                raise ConfigError("slam.dynamic.source=detector needs slam.dynamic.weights (a detector checkpoint)")
-            from vslam.dynamic.detector import load_detector
+            from vslam.dynamic.detector import default_weights, load_detector
 
-            self.detector = load_detector(cfg.weights)
+            self.detector = load_detector(cfg.weights or default_weights(), conf=cfg.score_threshold)
+            if cfg.img_size:  # wide frames (KITTI 1226x370): people stay large enough at a larger input
+                self.detector.img_size = cfg.img_size
         self._feats: Features | None = None
         self._depth = np.zeros(0)
         self._kept = np.zeros(0, bool)

@@ -26,6 +26,7 @@ import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -66,6 +67,16 @@ class TrainConfig:
     ckpt_every: int = 100
     log_every: int = 10
     bn_batches: int = 16
+    copy_paste: float = 0.0  # probability that a training sample is a background with pasted COCO people
+    paste_people: tuple[int, int] = (1, 4)  # people per pasted sample (inclusive range)
+    # what people are pasted onto: COCO train images (their labels kept) and training frames of the sequences;
+    # "kitti" is offered but off by default: its frames hold unlabelled cars and cyclists (negatives they are not)
+    backgrounds: tuple[str, ...] = ("coco", "tum", "euroc")
+    grey: float = 0.0  # probability of a grey training sample (EuRoC / KITTI grey cameras)
+    held_out_people: bool = True  # never train on the COCO images whose people walk through the benchmark
+    eval_composite: str = ""  # TUM sequence: evaluate on its frames with the benchmark's walkers composited
+    eval_composite_from: int = 100  # ... from this frame on (the frames before are copy-paste backgrounds)
+    weights: str = ""  # also write the final model here in float16 (the committed copy under models/)
     resume: bool = False
     toy: bool = False  # tiny model, tiny images, a few iterations: a smoke test of the whole recipe on CPU
 
@@ -84,36 +95,132 @@ def resolve(cfg: TrainConfig) -> TrainConfig:
     return replace(cfg, **{k: v for k, v in TOY.items()}, toy=True) if cfg.toy else cfg
 
 
-def build_data(cfg: TrainConfig) -> tuple[list[Sample], dict[str, list[Sample]]]:
-    """Training samples and named held-out sets."""
+@dataclass
+class TrainData:
+    """What batches are drawn from: labelled samples, and for copy-paste the backgrounds (labelled COCO samples or
+    unlabelled real frames) and the person cutouts (BGRA)."""
+
+    samples: list[Sample]
+    backgrounds: list[Sample]
+    cutouts: list[np.ndarray]
+
+
+def _coco_root(cfg: TrainConfig) -> Path:
+    from vslam.paths import data_root
+
+    return Path(cfg.coco) if Path(cfg.coco).is_absolute() else data_root() / cfg.coco
+
+
+def _held_out_stems(cfg: TrainConfig) -> frozenset[str]:
+    if not (cfg.held_out_people and (cfg.copy_paste > 0 or cfg.eval_composite)):
+        return frozenset()  # the recipe before copy-paste trained on every COCO128 train image
+    from vslam.dynamic.composite import benchmark_stems
+
+    return benchmark_stems(_coco_root(cfg))
+
+
+def _synthetic_kw(cfg: TrainConfig, person: int) -> dict:
+    w, h = cfg.synthetic_size
+    return dict(n_frames=cfg.synthetic_frames, stride=cfg.synthetic_stride, person=person, n_movers=cfg.synthetic_movers,
+                width=w, height=h)
+
+
+def training_data(cfg: TrainConfig) -> TrainData:
     from vslam.paths import data_root
 
     person = cfg.classes.index("person") if "person" in cfg.classes else None
-    train, val = [], {}
+    train: list[Sample] = []
+    backgrounds: list[Sample] = []
+    cutouts: list[np.ndarray] = []
+    paste = cfg.copy_paste > 0 and person is not None
     if cfg.coco:
-        root = Path(cfg.coco) if Path(cfg.coco).is_absolute() else data_root() / cfg.coco
-        train += load_yolo(root, "train2017", cfg.classes)
-        val["coco128-val"] = load_yolo(root, "val2017", cfg.classes)
+        skip = _held_out_stems(cfg)
+        coco = load_yolo(_coco_root(cfg), "train2017", cfg.classes, skip=skip)
+        train += coco
+        if paste:
+            from vslam.dynamic.composite import person_instances
+
+            found = person_instances(_coco_root(cfg), min_height_px=48, min_aspect=0.0, whole=False, exclude=skip)
+            cutouts = [c for _, c in found]
+            if "coco" in cfg.backgrounds:
+                backgrounds += coco
+    if paste:
+        from vslam.dynamic.copy_paste import background_files, read_background
+        from vslam.features.train_keypoints import KeypointTrainConfig
+
+        k = KeypointTrainConfig()  # the project's train / held-out splits of the real sequences
+        src = {"tum": (k.tum, k.tum_split, k.frame_stride), "kitti": (k.kitti, k.kitti_split, k.frame_stride),
+               "euroc": (k.euroc, k.euroc_split, k.frame_stride)}
+        files = background_files(data_root(), {n: v for n, v in src.items() if n in cfg.backgrounds})
+        imgs = [im for im in (read_background(f) for f in files) if im is not None]
+        backgrounds += [Sample(im, np.zeros((0, 4)), np.zeros(0, np.int64)) for im in imgs]
+        if not cutouts or not backgrounds:
+            raise ConfigError("train.copy_paste needs COCO person polygons (train.coco) and backgrounds")
     if person is not None and cfg.synthetic_seeds:
-        w, h = cfg.synthetic_size
-        kw = dict(n_frames=cfg.synthetic_frames, stride=cfg.synthetic_stride, person=person, n_movers=cfg.synthetic_movers, width=w, height=h)
-        train += synthetic_samples(cfg.synthetic_seeds, **kw)
-        if cfg.synthetic_val_seeds:
-            val["synthetic-val"] = synthetic_samples(cfg.synthetic_val_seeds, **kw)
+        train += synthetic_samples(cfg.synthetic_seeds, **_synthetic_kw(cfg, person))
     if not train:
         raise ConfigError("train: no training data (set coco and/or synthetic_seeds)")
-    return train, val
+    return TrainData(train, backgrounds, cutouts)
 
 
-def _batch(data: list[Sample], cfg: TrainConfig, it: int, dev: torch.device, rank: int | None = None) -> tuple[torch.Tensor, ...]:
+def held_out_sets(cfg: TrainConfig) -> dict[str, list[Sample]]:
+    """Named evaluation sets, none of them trained on: COCO128 val2017, the dynamic benchmark's composited TUM
+    frames (``eval_composite``), synthetic rooms of other seeds."""
+    person = cfg.classes.index("person") if "person" in cfg.classes else None
+    val: dict[str, list[Sample]] = {}
+    if cfg.coco:
+        val["coco128-val"] = load_yolo(_coco_root(cfg), "val2017", cfg.classes)
+    if cfg.eval_composite and person is not None:
+        val["tum-people"] = composite_samples(cfg, person)
+    if person is not None and cfg.synthetic_seeds and cfg.synthetic_val_seeds:
+        val["synthetic-val"] = synthetic_samples(cfg.synthetic_val_seeds, **_synthetic_kw(cfg, person))
+    return val
+
+
+def composite_samples(cfg: TrainConfig, person: int) -> list[Sample]:
+    """The dynamic benchmark's frames (``configs/bench.yaml``: 3 walkers, seed 0) from ``eval_composite_from``
+    on, with the boxes of the visible walkers: the held-out test of what SLAM will see."""
+    from vslam.dynamic.composite import MakeDynamicConfig, composited_frames
+    from vslam.paths import data_root
+
+    seq = Path(cfg.eval_composite) if Path(cfg.eval_composite).is_absolute() else data_root() / cfg.eval_composite
+    out = []
+    for i, (_, img, _, _, boxes) in enumerate(composited_frames(seq, _coco_root(cfg), MakeDynamicConfig(n_people=3, seed=0))):
+        if i >= cfg.eval_composite_from:
+            b = boxes[((boxes[:, 2] - boxes[:, 0]) > 4) & ((boxes[:, 3] - boxes[:, 1]) > 4)]
+            out.append(Sample(img, b, np.full(len(b), person, np.int64)))
+    return out
+
+
+def draw_sample(data: TrainData, cfg: TrainConfig, rng: np.random.Generator) -> Sample:
+    """One augmented training sample on the ``img_size`` canvas."""
+    if data.cutouts and rng.random() < cfg.copy_paste:
+        from vslam.dynamic.copy_paste import crop_background, paste
+
+        bg = data.backgrounds[int(rng.integers(len(data.backgrounds)))]
+        if not len(bg.boxes):  # an unlabelled frame: a random 4:3 window of it
+            bg = Sample(crop_background(bg.image, rng), bg.boxes, bg.labels)
+        lo, hi = cfg.paste_people
+        s = paste(bg, data.cutouts, cfg.classes.index("person"), rng, int(rng.integers(lo, hi + 1)))
+    else:
+        s = data.samples[int(rng.integers(len(data.samples)))]
+    if cfg.grey > 0 and rng.random() < cfg.grey:
+        s = Sample(cv2.cvtColor(cv2.cvtColor(s.image, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR), s.boxes, s.labels)
+    return place(s, cfg.img_size, rng)
+
+
+def _batch(data: TrainData, cfg: TrainConfig, it: int, dev: torch.device, rank: int | None = None) -> tuple[torch.Tensor, ...]:
     rng = np.random.default_rng([cfg.seed, it] if rank is None else [cfg.seed, it, rank])
-    samples = [place(data[i], cfg.img_size, rng) for i in rng.integers(0, len(data), cfg.batch)]
+    if not data.cutouts and cfg.grey == 0:  # the recipe before copy-paste: the same draws, the same weights
+        samples = [place(data.samples[i], cfg.img_size, rng) for i in rng.integers(0, len(data.samples), cfg.batch)]
+    else:
+        samples = [draw_sample(data, cfg, rng) for _ in range(cfg.batch)]
     return tuple(torch.from_numpy(a).to(dev) for a in collate(samples))
 
 
 def _recipe(d: dict) -> dict:
     """The config fields that change the trained weights (resume must match them)."""
-    return {k: v for k, v in d.items() if k not in ("resume", "threads", "device", "ckpt_every", "log_every")}
+    return {k: v for k, v in d.items() if k not in ("resume", "threads", "device", "ckpt_every", "log_every", "weights")}
 
 
 def _lr(cfg: TrainConfig, it: int) -> float:
@@ -166,8 +273,9 @@ def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict
         opt.load_state_dict(ck["optimizer"])
         start = int(ck["iteration"])
         log.info("resumed at iteration %d", start)
-    train_set, val_sets = build_data(cfg)
-    log.info("training samples: %d; held-out: %s", len(train_set), {k: len(v) for k, v in val_sets.items()})
+    train_set, val_sets = training_data(cfg), held_out_sets(cfg)
+    log.info("training samples: %d (+ %d backgrounds x %d people cutouts); held-out: %s", len(train_set.samples),
+             len(train_set.backgrounds), len(train_set.cutouts), {k: len(v) for k, v in val_sets.items()})
     model.train()
     lead = rank == 0  # the one rank that writes
     with open(out / "log.csv", "a") if lead else contextlib.nullcontext() as f:
@@ -200,5 +308,7 @@ def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict
     recalibrate_bn(model, [_batch(train_set, cfg, 10_000_000 + k, dev)[0] for k in range(cfg.bn_batches)])
     metrics = {name: evaluate(model, data, cfg, dev) for name, data in val_sets.items()}
     save_checkpoint(out / "model.pt", model, list(cfg.classes), img_size=cfg.img_size, metrics=metrics, train=asdict(cfg))
+    if cfg.weights:
+        save_checkpoint(cfg.weights, model, list(cfg.classes), half=True, img_size=cfg.img_size, metrics=metrics, train=asdict(cfg))
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return metrics

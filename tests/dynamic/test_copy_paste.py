@@ -1,0 +1,85 @@
+"""Copy-paste augmentation: a pasted person's box is the box of its visible pixels, hidden pastes are dropped,
+and the benchmark's walkers never reach the detector's training data."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from vslam.dynamic.copy_paste import crop_background, paste
+from vslam.dynamic.data import Sample
+from vslam.paths import data_root
+
+COCO = data_root() / "coco128"
+TEDDY = data_root() / "tum" / "rgbd_dataset_freiburg3_teddy"
+
+
+def _cutout(h: int, w: int, colour: int = 200) -> np.ndarray:
+    """A BGRA cutout whose opaque part is an ellipse (the box of the alpha is tighter than the crop)."""
+    import cv2
+
+    a = np.zeros((h, w), np.uint8)
+    cv2.ellipse(a, (w // 2, h // 2), (w // 2 - 2, h // 2 - 2), 0, 0, 360, 255, -1)
+    return np.dstack([np.full((h, w, 3), colour, np.uint8), a])
+
+
+def test_pasted_box_is_the_box_of_visible_pixels():
+    bg = Sample(np.zeros((120, 160, 3), np.uint8), np.array([[5.0, 5, 20, 20]]), np.array([1]))
+    for seed in range(10):
+        s = paste(bg, [_cutout(60, 24)], label=0, rng=np.random.default_rng(seed), n=1)
+        np.testing.assert_array_equal(s.boxes[0], bg.boxes[0])  # the background's labels are kept
+        assert s.labels[0] == 1 and set(s.labels[1:].tolist()) <= {0}
+        if len(s.boxes) == 1:
+            continue  # mostly outside the canvas: dropped
+        x1, y1, x2, y2 = s.boxes[1].astype(int)
+        lit = np.nonzero(s.image[..., 0] >= 0.5 * s.image.max())  # at least half opaque (the edge is feathered)
+        assert abs(lit[1].min() - x1) <= 1 and abs(lit[1].max() + 1 - x2) <= 1
+        assert abs(lit[0].min() - y1) <= 1 and abs(lit[0].max() + 1 - y2) <= 1
+
+
+def test_a_paste_hidden_by_a_later_one_is_dropped():
+    """Two identical cutouts at the same place: the second hides the first, so only one box survives."""
+
+    class Same:  # an rng that always draws the same place and size
+        def integers(self, lo, hi=None):
+            return 0 if hi is None else lo + (hi - lo) // 2
+
+        def uniform(self, lo, hi):
+            return (lo + hi) / 2
+
+        def random(self):
+            return 0.9
+
+    bg = Sample(np.zeros((120, 160, 3), np.uint8), np.zeros((0, 4)), np.zeros(0, np.int64))
+    s = paste(bg, [_cutout(60, 24)], label=0, rng=Same(), n=2)  # type: ignore[arg-type]
+    assert len(s.boxes) == 1 and s.labels.tolist() == [0]
+
+
+def test_crop_background_keeps_at_most_four_thirds():
+    wide = np.zeros((370, 1226, 3), np.uint8)
+    c = crop_background(wide, np.random.default_rng(0))
+    assert c.shape == (370, 493, 3)
+    assert crop_background(np.zeros((480, 640, 3), np.uint8), np.random.default_rng(0)).shape == (480, 640, 3)
+
+
+@pytest.mark.skipif(not (COCO.is_dir() and TEDDY.is_dir()), reason="COCO128 / TUM teddy not in $VSLAM_DATA")
+def test_benchmark_walkers_are_held_out_of_training():
+    from vslam.dynamic.composite import benchmark_stems, person_cutouts, person_instances
+    from vslam.dynamic.train import TrainConfig, training_data
+
+    stems = benchmark_stems(COCO)
+    walkers = person_cutouts(COCO)
+    assert 1 <= len(stems) <= len(walkers) == 20
+    cfg = TrainConfig(classes=("person", "car"), coco=str(COCO), copy_paste=0.5, synthetic_seeds=(), img_size=128)
+    data = training_data(cfg)
+    n_train = len(list((COCO / "images" / "train2017").glob("*.jpg")))
+    assert len(data.samples) == n_train - len(stems)
+    kept = person_instances(COCO, min_height_px=48, min_aspect=0.0, whole=False, exclude=stems)
+    assert {s for s, _ in kept}.isdisjoint(stems) and len(data.cutouts) == len(kept)
+    for w in walkers:  # no training cutout is one of the benchmark's walkers
+        assert not any(c.shape == w.shape and np.array_equal(c, w) for c in data.cutouts)
+    # without copy-paste or the composite evaluation, the recipe of the first model: every train image
+    plain = training_data(dataclasses.replace(cfg, copy_paste=0.0))
+    assert len(plain.samples) == n_train and not plain.cutouts

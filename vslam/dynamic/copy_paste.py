@@ -1,0 +1,91 @@
+"""Copy-paste augmentation: COCO person instances pasted onto the scenes SLAM runs in.
+
+Dwibedi et al., "Cut, Paste and Learn", ICCV 2017, and Ghiasi et al., "Simple Copy-Paste is a Strong Data
+Augmentation Method for Instance Segmentation", CVPR 2021: pasting segmented instances at random scales and
+places onto other images is enough to teach a detector objects in scenes it has no labels for. Here the
+backgrounds are the training frames of the real sequences we hold (TUM teddy, KITTI 07, EuRoC V1_01) and
+COCO128 train images; the people come from COCO128 polygons, never from the images whose people walk through
+the dynamic benchmark (``composite.benchmark_stems``), so the benchmark's walkers stay unseen.
+
+A pasted person may be partly outside the canvas or hidden by a later paste; its box is the box of its visible
+pixels, and it is dropped when less than ``min_visible`` of it is left. Sizes follow the benchmark's range (a
+person 0.15-0.95 of the image height); brightness follows the background (gain 0.5-1.3) and the alpha edge is
+feathered by a 3x3 blur, so the pasted outline is not a shortcut.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from vslam.dynamic.data import Sample
+
+
+def background_files(root: Path, sources: dict[str, tuple[str, int, int]]) -> list[Path]:
+    """``sources``: kind -> (folder under ``root``, number of leading frames used, stride). Missing folders are
+    left out (a fresh clone without the data)."""
+    from vslam.features.train_keypoints import sequence_frames
+
+    out: list[Path] = []
+    for kind, (rel, n, stride) in sources.items():
+        if (root / rel).exists():
+            out += sequence_frames(kind, root / rel)[:n:stride]
+    return out
+
+
+def read_background(path: Path, max_side: int = 640) -> np.ndarray | None:
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        return None
+    r = min(1.0, max_side / max(img.shape[:2]))
+    return cv2.resize(img, (round(img.shape[1] * r), round(img.shape[0] * r)), interpolation=cv2.INTER_AREA) if r < 1 else img
+
+
+def crop_background(img: np.ndarray, rng: np.random.Generator, aspect: float = 4 / 3) -> np.ndarray:
+    """A random window of at most ``aspect`` width / height (KITTI's 1226x370 frames become several views)."""
+    h, w = img.shape[:2]
+    cw = min(w, int(round(h * aspect)))
+    x0 = int(rng.integers(0, w - cw + 1))
+    return img[:, x0:x0 + cw]
+
+
+def paste(sample: Sample, cutouts: list[np.ndarray], label: int, rng: np.random.Generator, n: int,
+          height: tuple[float, float] = (0.15, 0.95), min_visible: float = 0.3) -> Sample:
+    """``sample`` with ``n`` random cutouts (BGRA) pasted as class ``label``. Existing boxes are kept (a paste
+    over a labelled object only hides part of it; a fully hidden one would still be labelled, which at our
+    paste sizes is rare and matches COCO's own occluded labels)."""
+    img = sample.image.copy()
+    H, W = img.shape[:2]
+    owner = np.full((H, W), -1, np.int32)  # which paste is visible at each pixel
+    areas = []
+    for k in range(n):
+        cut = cutouts[int(rng.integers(len(cutouts)))]
+        ch, cw = cut.shape[:2]
+        s = min(rng.uniform(*height) * H / ch, W / cw)  # a wide cutout (a lying person) fits the width
+        nw, nh = max(2, round(cw * s)), max(2, round(ch * s))
+        cut = cv2.resize(cut, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+        if rng.random() < 0.5:
+            cut = cut[:, ::-1]
+        x0 = int(rng.integers(-nw // 3, W - 2 * nw // 3 + 1))
+        y0 = int(rng.integers(-nh // 4, H - 3 * nh // 4 + 1))
+        X0, Y0, X1, Y1 = max(x0, 0), max(y0, 0), min(x0 + nw, W), min(y0 + nh, H)
+        if X1 - X0 < 2 or Y1 - Y0 < 2:
+            continue
+        part = cut[Y0 - y0:Y1 - y0, X0 - x0:X1 - x0]
+        alpha = cv2.blur(part[..., 3].astype(np.float32) / 255.0, (3, 3))[..., None]
+        colour = np.clip(part[..., :3].astype(np.float32) * rng.uniform(0.5, 1.3), 0, 255)
+        region = img[Y0:Y1, X0:X1].astype(np.float32)
+        img[Y0:Y1, X0:X1] = (alpha * colour + (1 - alpha) * region).astype(np.uint8)
+        hard = part[..., 3] >= 128
+        owner[Y0:Y1, X0:X1][hard] = k
+        areas.append((k, int(hard.sum())))
+    boxes, labels = [sample.boxes.reshape(-1, 4)], [sample.labels]
+    for k, area in areas:
+        ys, xs = np.nonzero(owner == k)
+        if area == 0 or len(xs) < min_visible * area:
+            continue
+        boxes.append(np.array([[xs.min(), ys.min(), xs.max() + 1, ys.max() + 1]], np.float64))
+        labels.append(np.array([label], np.int64))
+    return Sample(img, np.concatenate(boxes).astype(np.float64), np.concatenate(labels))
