@@ -107,3 +107,25 @@ def test_detector_source_masks_only_confident_boxes_of_listed_classes():
     cfg = DynamicConfig(enabled=True, source="detector", dilation_px=0, score_threshold=0.35)
     keep = DynamicFilter(cfg, CAM, detector=FakeDetector()).keep(Frame(0, 0.0, np.zeros((48, 64), np.uint8)), f)
     np.testing.assert_array_equal(keep, ~in_boxes(f.raw, np.array([[2.0, 5.0, 19.0, 29.0]])))
+
+
+def test_keypoints_on_depth_edges_are_not_checked():
+    """geometric.edge_m: a keypoint whose 5x5 depth neighbourhood spans a jump (an outline: one pixel off reads
+    the background) gets no depth, so the check can neither flag it nor compare it; a hole nearby is no edge
+    (Kinect depth has holes everywhere); off by default."""
+    from vslam.data.types import Frame
+    from vslam.dynamic import GeometricConfig
+    from vslam.features.base import Features
+
+    depth = np.full((48, 64), 2.0, np.float32)
+    depth[:, 32:] = 3.0  # a depth edge at x = 31.5
+    depth[5:8, 5:8] = 0.0  # a hole
+    uv = np.array([[10.0, 20.0], [31.0, 20.0], [33.0, 20.0], [50.0, 20.0], [6.0, 9.0]])
+    f = Features(uv, uv, np.zeros((5, 32), np.uint8), np.zeros(5), np.zeros(5))
+    frame = Frame(0, 0.0, np.zeros((48, 64), np.uint8), depth=depth)
+    on = DynamicFilter(DynamicConfig(enabled=True, source="none", geometric=GeometricConfig(enabled=True, edge_m=0.05)), CAM)
+    z = on._keypoint_depth(frame, f)
+    np.testing.assert_array_equal(np.isnan(z), [False, True, True, False, False])
+    np.testing.assert_allclose(z[[0, 3, 4]], [2.0, 3.0, 2.0])
+    off = DynamicFilter(DynamicConfig(enabled=True, source="none", geometric=GeometricConfig(enabled=True)), CAM)
+    np.testing.assert_allclose(off._keypoint_depth(frame, f)[:4], [2.0, 2.0, 3.0, 3.0])

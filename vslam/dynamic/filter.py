@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 
+import cv2
 import numpy as np
 
 from vslam.data.types import Frame, PinholeCamera
@@ -77,6 +78,14 @@ class DynamicFilter:
         if frame.depth is None or self.geo is None:
             return np.full(len(feats), np.nan)
         g = self.cfg.geometric
-        z = frame.depth[np.clip(np.rint(feats.raw[:, 1]).astype(int), 0, frame.depth.shape[0] - 1),
-                        np.clip(np.rint(feats.raw[:, 0]).astype(int), 0, frame.depth.shape[1] - 1)].astype(np.float64)
-        return np.where((z >= g.min_depth) & (z <= g.max_depth), z, np.nan)
+        r = np.clip(np.rint(feats.raw[:, 1]).astype(int), 0, frame.depth.shape[0] - 1)
+        c = np.clip(np.rint(feats.raw[:, 0]).astype(int), 0, frame.depth.shape[1] - 1)
+        z = frame.depth[r, c].astype(np.float64)
+        ok = (z >= g.min_depth) & (z <= g.max_depth)
+        if g.edge_m > 0:  # on a depth edge the keypoint's depth may be the background's
+            d = frame.depth.astype(np.float32)
+            k = np.ones((5, 5), np.uint8)
+            hi = cv2.dilate(d, k)  # holes (0) raise neither bound: Kinect holes are everywhere
+            lo = cv2.erode(np.where(d > 0, d, np.float32(1e6)), k)
+            ok &= (hi[r, c] - lo[r, c]) <= g.edge_m + g.rel * z
+        return np.where(ok, z, np.nan)

@@ -1,11 +1,14 @@
-"""``vslam train detector``: train the attention detector on COCO128 (YOLO format) + synthetic frames.
+"""``vslam train detector``: train the attention detector on COCO128 (YOLO format) + synthetic frames, with
+copy-paste of COCO people onto the training frames of the real sequences (``copy_paste``, ``vslam.dynamic.copy_paste``).
+The COCO images whose people walk through the dynamic benchmark are never trained on (``held_out_people``).
 
 Seeded and resumable: the batch of iteration ``it`` is drawn from ``np.random.default_rng([seed, it])`` and
 ``last.pt`` holds model + optimiser + iteration, so an interrupted run resumed with ``resume: true`` gives the
 same weights as an uninterrupted one. At the end BatchNorm statistics are recomputed exactly on training
 batches ("precise BN", Wu & Johnson, "Rethinking Batch in BatchNorm", 2021: short runs leave the running
-averages stale), then AP50 / AP50-95 per class is measured on held-out sets: COCO128 val2017 and synthetic
-rooms of seeds never used for training. Outputs in ``out``: last.pt, model.pt (weights + config + names +
+averages stale), then AP50 / AP50-95 per class is measured on held-out sets: COCO128 val2017, the dynamic
+benchmark's composited TUM frames after the training split (``eval_composite``) and synthetic rooms of seeds
+never used for training. Outputs in ``out``: last.pt, model.pt (weights + config + names +
 metrics), metrics.json, log.csv.
 
 Several GPUs (or CPU processes): ``torchrun --nproc_per_node=N -m vslam.cli train detector ...``. Each rank
