@@ -603,7 +603,7 @@ def _detector_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
 
     lines = []
     for row, r in rows:
-        lines += ["", f"## Dynamic-object detector: attention ablation (issue 5, `{row.name}`)", ""]
+        lines += ["", f"## Dynamic-object detector (issue 5, `{row.name}`)", ""]
         if "error" in r:
             lines.append(f"**failed**: {r['error']}")
             continue

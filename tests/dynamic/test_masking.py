@@ -129,3 +129,26 @@ def test_keypoints_on_depth_edges_are_not_checked():
     np.testing.assert_allclose(z[[0, 3, 4]], [2.0, 3.0, 2.0])
     off = DynamicFilter(DynamicConfig(enabled=True, source="none", geometric=GeometricConfig(enabled=True)), CAM)
     np.testing.assert_allclose(off._keypoint_depth(frame, f)[:4], [2.0, 2.0, 3.0, 3.0])
+
+
+def test_detector_boxes_are_remembered_for_box_memory_s():
+    """A person found at t = 0 and missed at t = 0.1 s is still masked then (box_memory_s = 0.15), not at 0.2 s."""
+    from vslam.dynamic.detector import Detections
+
+    class Blink:  # detects the person in the first frame only
+        def __init__(self):
+            self.calls = 0
+
+        def detect(self, image):
+            self.calls += 1
+            if self.calls == 1:
+                return Detections(np.array([[0.0, 0, 20, 20]]), np.array([0.9]), np.array([0]), np.array(["person"], dtype=object))
+            return Detections(np.zeros((0, 4)), np.zeros(0), np.zeros(0, np.int64), np.array([], dtype=object))
+
+    uv = np.array([[10.0, 10.0], [40.0, 10.0]])
+    f = Features(uv, uv, np.zeros((2, 32), np.uint8), np.zeros(2), np.zeros(2))
+    flt = DynamicFilter(DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.15), CAM, detector=Blink())
+    kept = [flt.keep(Frame(i, t, np.zeros((48, 64), np.uint8)), f).tolist() for i, t in enumerate((0.0, 0.1, 0.2))]
+    assert kept == [[False, True], [False, True], [True, True]]
+    none = DynamicFilter(DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.0), CAM, detector=Blink())
+    assert [none.keep(Frame(i, t, np.zeros((48, 64), np.uint8)), f).tolist() for i, t in enumerate((0.0, 0.1))] == [[False, True], [True, True]]

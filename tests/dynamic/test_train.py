@@ -69,3 +69,19 @@ def test_toy_run_is_resumable_to_the_same_weights(tmp_path, monkeypatch):
     b = torch.load(tmp_path / "b" / "model.pt", weights_only=False)["model"]
     for k in a:
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=1e-6, msg=k)
+
+
+def test_init_starts_from_a_checkpoint(tmp_path):
+    """``init``: a further round starts from the given weights (with a vanishing learning rate it ends where
+    the first round did); a checkpoint of another architecture is refused."""
+    first = tr.TrainConfig(out=str(tmp_path / "a"), **CFG)
+    tr.train(first)
+    again = dataclasses.replace(first, out=str(tmp_path / "b"), lr=1e-12, init=str(tmp_path / "a" / "model.pt"))
+    tr.train(again)
+    a = torch.load(tmp_path / "a" / "model.pt", weights_only=False)["model"]
+    b = torch.load(tmp_path / "b" / "model.pt", weights_only=False)["model"]
+    for k in a:
+        if a[k].is_floating_point() and "running" not in k:
+            torch.testing.assert_close(a[k], b[k], rtol=0, atol=1e-6, msg=k)
+    with pytest.raises(tr.ConfigError, match="another architecture"):
+        tr.train(dataclasses.replace(again, out=str(tmp_path / "c"), attention="cbam"))

@@ -56,6 +56,11 @@ class DynamicConfig:
     # detector boxes below this score are ignored; 0.1 for the shipped CPU-trained model (its scores run low),
     # chosen on a validation composite (walkers seed 1): ATE 0.0073 / 0.0057 / 0.0066 / 0.067 m at 0.05 / 0.1 / 0.2 / 0.3
     score_threshold: float = 0.1
+    # detector: the boxes of the frames of the last ``box_memory_s`` seconds are masked too (a person missed in
+    # one frame was found in one before; boxes move little in a fraction of a second). On the validation
+    # composite (TUM, 30 Hz, walkers seed 1) ATE 0.0057 / 0.0087 / 0.0049 / 0.0047 / 0.0088 m with 0 / 2 / 5 / 8
+    # / 12 frames: 8 frames = 0.27 s
+    box_memory_s: float = 0.27
     weights: str = ""  # detector checkpoint (source=detector); "" = the shipped models/detector_esea.pt
     img_size: int = 0  # detector input: the image's longer side resized to this; 0 = the size it was trained at
     geometric: GeometricConfig = field(default_factory=GeometricConfig)
@@ -65,5 +70,7 @@ class DynamicConfig:
             raise ConfigError(f"slam.dynamic.source must be detector, gt_mask or none, got {self.source!r}")
         if self.dilation_px < 0:
             raise ConfigError("slam.dynamic.dilation_px must be >= 0")
+        if self.box_memory_s < 0:
+            raise ConfigError("slam.dynamic.box_memory_s must be >= 0")
         if self.img_size < 0 or self.img_size % 32:
             raise ConfigError(f"slam.dynamic.img_size must be 0 or a positive multiple of 32, got {self.img_size}")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections import deque
 
 import cv2
 import numpy as np
@@ -31,6 +32,7 @@ class DynamicFilter:
             self.detector = load_detector(cfg.weights or default_weights(), conf=cfg.score_threshold)
             if cfg.img_size:  # wide frames (KITTI 1226x370): people stay large enough at a larger input
                 self.detector.img_size = cfg.img_size
+        self._recent: deque[tuple[float, np.ndarray]] = deque()  # (timestamp, boxes) of this and recent frames
         self._feats: Features | None = None
         self._depth = np.zeros(0)
         self._kept = np.zeros(0, bool)
@@ -47,7 +49,10 @@ class DynamicFilter:
         if c.source == "detector":
             det = self.detector.detect(frame.image)  # type: ignore[union-attr]
             sel = (det.scores >= c.score_threshold) & np.isin(det.class_names, list(c.classes))
-            return in_boxes(feats.raw, det.boxes[sel], c.dilation_px)
+            self._recent.append((frame.timestamp, det.boxes[sel]))
+            while frame.timestamp - self._recent[0][0] > c.box_memory_s + 1e-6:
+                self._recent.popleft()
+            return in_boxes(feats.raw, np.concatenate([b for _, b in self._recent]), c.dilation_px)
         return np.zeros(len(feats), bool)
 
     def keep(self, frame: Frame, feats: Features) -> np.ndarray:

@@ -80,6 +80,7 @@ class TrainConfig:
     eval_composite: str = ""  # TUM sequence: evaluate on its frames with the benchmark's walkers composited
     eval_composite_from: int = 100  # ... from this frame on (the frames before are copy-paste backgrounds)
     weights: str = ""  # also write the final model here in float16 (the committed copy under models/)
+    init: str = ""  # start from this checkpoint's weights (a further training round) instead of random ones
     resume: bool = False
     toy: bool = False  # tiny model, tiny images, a few iterations: a smoke test of the whole recipe on CPU
 
@@ -265,6 +266,13 @@ def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)  # weight initialisation
     model = YoloDetector(DetectorConfig(cfg.scale, cfg.attention, len(cfg.classes), width=cfg.width)).to(dev)
+    if cfg.init:
+        from vslam.dynamic.detector import load_model
+
+        start_model, ck = load_model(cfg.init)
+        if start_model.cfg != model.cfg or list(ck["names"]) != list(cfg.classes):
+            raise ConfigError(f"{cfg.init}: another architecture or class list than train.{cfg.attention} / {list(cfg.classes)}")
+        model.load_state_dict(start_model.state_dict())
     net = ddp.wrap(model, dev, n_ranks)  # what the forward pass goes through
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     start = 0
