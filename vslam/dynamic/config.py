@@ -53,13 +53,13 @@ class DynamicConfig:
     source: MaskSource = "gt_mask"
     classes: tuple[str, ...] = ("person", "bicycle", "car", "motorcycle", "bus", "truck", "chair")
     dilation_px: int = 4  # mask / box growth: keypoints on an object's outline have an ORB patch on it
-    # detector boxes below this score are ignored; 0.1 for the shipped CPU-trained model (its scores run low),
-    # chosen on a validation composite (walkers seed 1): ATE 0.0073 / 0.0057 / 0.0066 / 0.067 m at 0.05 / 0.1 / 0.2 / 0.3
-    score_threshold: float = 0.1
+    # detector boxes below this score are ignored; for the shipped CPU-trained model (its scores run low) chosen
+    # on a validation composite (TUM teddy, walkers seed 1): ATE 0.0051 / 0.0050 / 0.0057 / 0.0064 m at
+    # 0.1 / 0.2 / 0.3 / 0.4 (box memory 0.27 s)
+    score_threshold: float = 0.2
     # detector: the boxes of the frames of the last ``box_memory_s`` seconds are masked too (a person missed in
-    # one frame was found in one before; boxes move little in a fraction of a second). On the validation
-    # composite (TUM, 30 Hz, walkers seed 1) ATE 0.0057 / 0.0087 / 0.0049 / 0.0047 / 0.0088 m with 0 / 2 / 5 / 8
-    # / 12 frames: 8 frames = 0.27 s
+    # one frame was found in one before; boxes move little in a fraction of a second). Same validation
+    # composite at score 0.2: ATE 0.0056 / 0.0075 / 0.0050 m with 0 / 0.15 / 0.27 s
     box_memory_s: float = 0.27
     weights: str = ""  # detector checkpoint (source=detector); "" = the shipped models/detector_esea.pt
     img_size: int = 0  # detector input: the image's longer side resized to this; 0 = the size it was trained at
