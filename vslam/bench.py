@@ -583,32 +583,30 @@ def _place_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     return lines
 
 
+def _report_tables(rows: list[tuple[BenchRow, dict[str, Any]]], heading: str, format_table: Any) -> list[str]:
+    """One section per row: ``heading`` (with the row's name), the row's own table, its target."""
+    lines = []
+    for row, r in rows:
+        lines += ["", heading.format(name=row.name), ""]
+        if "error" in r:
+            lines.append(f"**failed**: {r['error']}")
+            continue
+        lines += [*format_table(r), "", f"Target: {row.target}"]
+    return lines
+
+
 def _features_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     """Issue 4: the homography benchmark and epipolar inliers, ConvPoint vs ORB vs SIFT in one run."""
     from vslam.features.evaluate import format_table
 
-    lines = []
-    for row, r in rows:
-        lines += ["", f"## Keypoints: ConvPoint vs ORB vs SIFT (issue 4, `{row.name}`)", ""]
-        if "error" in r:
-            lines.append(f"**failed**: {r['error']}")
-            continue
-        lines += [*format_table(r), "", f"Target: {row.target}"]
-    return lines
+    return _report_tables(rows, "## Keypoints: ConvPoint vs ORB vs SIFT (issue 4, `{name}`)", format_table)
 
 
 def _detector_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
-    """Issue 5: the attention ablation on the held-out sets, one recipe, one seed."""
+    """Issue 5: detectors on the held-out sets (the attention ablation: one recipe, one seed)."""
     from vslam.dynamic.evaluate import format_table
 
-    lines = []
-    for row, r in rows:
-        lines += ["", f"## Dynamic-object detector (issue 5, `{row.name}`)", ""]
-        if "error" in r:
-            lines.append(f"**failed**: {r['error']}")
-            continue
-        lines += [*format_table(r), "", f"Target: {row.target}"]
-    return lines
+    return _report_tables(rows, "## Dynamic-object detector (issue 5, `{name}`)", format_table)
 
 
 def _stage_table(entries: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:

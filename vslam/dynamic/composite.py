@@ -214,22 +214,24 @@ def composited_kitti_frames(seq_dir: str | Path, coco_root: str | Path, cfg: Mak
         raise DatasetError(seq_dir, "make-dynamic needs the ground-truth poses (poses/NN.txt)")
     n = len(seq) if cfg.max_frames is None else min(len(seq), cfg.max_frames)
     walkers = place_walkers_on_road(person_cutouts(coco_root), gt.poses[:n], cfg, np.random.default_rng(cfg.seed))
-    K = seq.calibration.cam0.K
+    K, stamps = seq.calibration.cam0.K, seq.timestamps()
     for i in range(n):
         fr = seq.frame(i)
         grey = fr.image
         C = gt.poses[i][:3, 3]
         active = [b for _, b in walkers if np.linalg.norm(b.centre - C) < cfg.max_range]  # (nothing occludes them)
-        t = float(seq.timestamps()[i])
+        t = float(stamps[i])
         img, _, mask, boxes = composite(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), np.zeros(grey.shape, np.float32), K,
                                         gt.poses[i], t, active)
         yield fr, cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), mask, boxes
 
 
-def composited_frames(seq_dir: str | Path, coco_root: str | Path, cfg: MakeDynamicConfig = MakeDynamicConfig()) -> Iterator[tuple[Frame, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-    """The TUM RGB-D sequence ``seq_dir`` with walking people: per frame (original frame, composited image BGR,
-    depth metres, person mask (H,W) bool, person boxes (K,4) x1,y1,x2,y2 exclusive). Frames before the first
-    ground-truth pose pass through unchanged (the walkers are placed ahead of the first posed camera)."""
+def composited_frames(seq_dir: str | Path, coco_root: str | Path, cfg: MakeDynamicConfig = MakeDynamicConfig(),
+                      start: int = 0) -> Iterator[tuple[Frame, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """The TUM RGB-D sequence ``seq_dir`` with walking people: per frame from the ``start``-th on (original frame,
+    composited image BGR, depth metres, person mask (H,W) bool, person boxes (K,4) x1,y1,x2,y2 exclusive).
+    Frames before the first ground-truth pose pass through unchanged (the walkers are placed ahead of the first
+    posed camera, so they are the same whatever ``start`` is)."""
     from vslam.data.tum import TumRgbdSequence
 
     seq = TumRgbdSequence(seq_dir)
@@ -249,8 +251,10 @@ def composited_frames(seq_dir: str | Path, coco_root: str | Path, cfg: MakeDynam
         if fr.T_world_cam is not None:
             if boards is None:
                 boards, t0 = place_people(cutouts, fr.T_world_cam, cfg, rng), fr.timestamp
-            img, depth, mask, boxes = composite(img, depth, cam.K, fr.T_world_cam, fr.timestamp - t0, boards)
-        yield fr, img, depth, mask, boxes
+            if i >= start:
+                img, depth, mask, boxes = composite(img, depth, cam.K, fr.T_world_cam, fr.timestamp - t0, boards)
+        if i >= start:
+            yield fr, img, depth, mask, boxes
 
 
 def make_dynamic(seq_dir: str | Path, out_dir: str | Path, coco_root: str | Path, cfg: MakeDynamicConfig = MakeDynamicConfig()) -> Path:

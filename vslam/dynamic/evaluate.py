@@ -37,7 +37,7 @@ def mask_step_ms(det: Any, image: np.ndarray, n_keypoints: int = 1500, repeats: 
 def evaluate_detectors(weights: list[str], threads: int = 2, frame: str = "") -> dict[str, Any]:
     """-> {"models": {file: {"attention", "params", "img_size", "ms_640x480", "sets": {set: report}}}, "sets": sizes}."""
     from vslam.dynamic.detector import Detector, load_model
-    from vslam.dynamic.train import TrainConfig, evaluate, held_out_sets
+    from vslam.dynamic.train import TrainConfig, _recipe, evaluate, held_out_sets
 
     torch.set_num_threads(threads)
     names = {f.name for f in fields(TrainConfig)}
@@ -45,7 +45,7 @@ def evaluate_detectors(weights: list[str], threads: int = 2, frame: str = "") ->
     for w in weights:
         model, ckpt = load_model(w)
         train = {k: tuple(v) if isinstance(v, list) else v for k, v in ckpt.get("train", {}).items() if k in names}
-        rec = {k: v for k, v in train.items() if k not in ("attention", "out", "weights", "threads", "device", "resume")}
+        rec = {k: v for k, v in _recipe(train).items() if k not in ("attention", "out")}  # what the ablation varies
         if recipe is None:
             recipe = rec
         elif rec != recipe:
@@ -56,11 +56,11 @@ def evaluate_detectors(weights: list[str], threads: int = 2, frame: str = "") ->
     sets = held_out_sets(cfg)
     image = _frame(frame, sets)
     out: dict[str, Any] = {"models": {}, "sets": {k: len(v) for k, v in sets.items()}}
-    for w, model, ckpt, train in loaded:
-        dev = torch.device("cpu")
-        rep = {name: evaluate(model, data, replace(cfg, img_size=int(ckpt.get("img_size", cfg.img_size))), dev)
-               for name, data in sets.items()}
-        det = Detector(model, ckpt["names"], img_size=int(ckpt.get("img_size", cfg.img_size)), conf=0.25)
+    dev = torch.device("cpu")
+    for w, model, ckpt, _ in loaded:
+        size = int(ckpt.get("img_size", cfg.img_size))
+        rep = {name: evaluate(model, data, replace(cfg, img_size=size), dev) for name, data in sets.items()}
+        det = Detector(model, ckpt["names"], img_size=size, conf=0.25)
         out["models"][Path(w).name] = {
             "attention": model.cfg.attention, "params": sum(p.numel() for p in model.parameters()),
             "img_size": det.img_size, "ms_640x480": mask_step_ms(det, image), "sets": rep}

@@ -189,10 +189,10 @@ def composite_samples(cfg: TrainConfig, person: int) -> list[Sample]:
 
     seq = Path(cfg.eval_composite) if Path(cfg.eval_composite).is_absolute() else data_root() / cfg.eval_composite
     out = []
-    for i, (_, img, _, _, boxes) in enumerate(composited_frames(seq, _coco_root(cfg), MakeDynamicConfig(n_people=3, seed=0))):
-        if i >= cfg.eval_composite_from:
-            b = boxes[((boxes[:, 2] - boxes[:, 0]) > 4) & ((boxes[:, 3] - boxes[:, 1]) > 4)]
-            out.append(Sample(img, b, np.full(len(b), person, np.int64)))
+    frames = composited_frames(seq, _coco_root(cfg), MakeDynamicConfig(n_people=3, seed=0), start=cfg.eval_composite_from)
+    for _, img, _, _, boxes in frames:
+        b = boxes[((boxes[:, 2] - boxes[:, 0]) > 4) & ((boxes[:, 3] - boxes[:, 1]) > 4)]
+        out.append(Sample(img, b, np.full(len(b), person, np.int64)))
     return out
 
 
