@@ -16,6 +16,7 @@ All pixel arrays are ``(N, 4)`` rows (u1, v1, u2, v2); ``raw`` in the distorted 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -57,6 +58,14 @@ class LineConfig:
     # only 4.41 / 8.7 mm); BA CPU time with / without lines on the same problems: 60 -> 1.58x, 40 -> 1.45x
     ba_max_lines: int = 60
     weight: float = 1.0  # pose-only: line residual weight relative to points
+    # where new line landmarks come from: "depth" (the RGB-D depth map along the segment), "two_view"
+    # (segments of a new keyframe matched to a covisible keyframe's by epipolar overlap, planes intersected),
+    # "both" (depth first, two-view for what depth left), "auto" = depth for RGB-D, two-view otherwise
+    create: Literal["auto", "depth", "two_view", "both"] = "auto"
+    tri_min_epi_angle_deg: float = 5.0  # two-view: a segment must cross the epipolar lines at least this steeply
+    tri_min_angle_deg: float = 2.0  # ... and the two back-projected planes meet at least at this angle
+    two_view_min_obs: int = 3  # a two-view line still seen by fewer keyframes ``cull_age`` keyframes later goes
+    cull_age: int = 3
 
 
 @dataclass
@@ -203,13 +212,63 @@ def match_lines(pred: np.ndarray, pred_desc: np.ndarray, frame: LineFeatures, cf
     overlap = np.minimum(np.maximum(s1, s2), lp[:, None]) - np.maximum(np.minimum(s1, s2), 0.0)
     shorter = np.minimum(lp[:, None], np.abs(s2 - s1))
     ok = cos_ok & (d1 <= r) & (d2 <= r) & (overlap >= cfg.min_overlap * np.maximum(shorter, 1e-9))
-    dist = np.where(ok, np.sqrt(np.maximum(2.0 - 2.0 * (pred_desc @ frame.desc.T), 0.0)), np.inf)
-    dist[dist > cfg.max_desc_dist] = np.inf
+    return _best_unique(np.where(ok, _desc_dist(pred_desc, frame.desc), np.inf), cfg.max_desc_dist)
+
+
+def match_epipolar_segments(segs_a: np.ndarray, desc_a: np.ndarray, segs_b: np.ndarray, desc_b: np.ndarray,
+                            F_b_a: np.ndarray, cfg: LineConfig) -> np.ndarray:
+    """Matches between two keyframes' segments for two-view line triangulation (no map line to predict from).
+
+    segs_*: (A,4) / (B,4) oriented segments, ideal pixels; desc_*: their descriptors; F_b_a: (3,3) fundamental
+    matrix, x_b^T F x_a = 0. A pair must (1) be a descriptor match (<= ``max_desc_dist``), (2) cut the
+    epipolar lines of a's end points at a usable angle (>= ``tri_min_epi_angle_deg``: a segment along the
+    epipolar lines has no second-view constraint and its triangulation is degenerate), (3) keep its
+    orientation -- a's end points, carried to b's line along their epipolar lines, come out in b's order --
+    and (4) overlap b by ``min_overlap`` of the shorter of b and that carried span, whose length is within
+    4x of b's (LSD cuts an edge differently in two views; much more is another edge). Schmid & Zisserman
+    1997 match lines by this epipolar overlap. -> (M,2) pairs (index in a, index in b), each b used once.
+    """
+    empty = np.zeros((0, 2), np.int64)
+    if len(segs_a) == 0 or len(segs_b) == 0:
+        return empty
+    one_a = np.ones((len(segs_a), 1))
+    e1 = np.hstack([segs_a[:, :2], one_a]) @ F_b_a.T  # (A,3) epipolar lines in b of a's end points
+    e2 = np.hstack([segs_a[:, 2:], one_a]) @ F_b_a.T
+    b1, db = segs_b[:, :2], segs_b[:, 2:] - segs_b[:, :2]
+    lb = np.maximum(np.linalg.norm(db, axis=1), 1e-9)
+    ub = db / lb[:, None]
+    # where b1 + s ub meets the line e: e . (b1, 1) + s e[:2] . ub = 0
+    s_pts, sin_ok = [], np.ones((len(segs_a), len(segs_b)), bool)
+    for e in (e1, e2):
+        num = -(e[:, :2] @ b1.T + e[:, 2:3])  # (A,B)
+        den = e[:, :2] @ ub.T
+        en = np.maximum(np.linalg.norm(e[:, :2], axis=1), 1e-12)
+        ok = np.abs(den) >= np.sin(np.radians(cfg.tri_min_epi_angle_deg)) * en[:, None]
+        sin_ok &= ok
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s_pts.append(np.where(ok, num / np.where(ok, den, 1.0), np.nan))
+    s1, s2 = s_pts
+    span = s2 - s1
+    overlap = np.minimum(s2, lb[None, :]) - np.maximum(s1, 0.0)
+    shorter = np.minimum(span, lb[None, :])
+    ok = sin_ok & (span > 0.25 * lb[None, :]) & (span < 4.0 * lb[None, :]) & (overlap >= cfg.min_overlap * shorter)
+    return _best_unique(np.where(ok, _desc_dist(desc_a, desc_b), np.inf), cfg.max_desc_dist)
+
+
+def _desc_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(A,D), (B,D) unit descriptors -> (A,B) L2 distances."""
+    return np.sqrt(np.maximum(2.0 - 2.0 * (a @ b.T), 0.0))
+
+
+def _best_unique(dist: np.ndarray, max_dist: float) -> np.ndarray:
+    """Row-wise nearest column within ``max_dist`` (inf = not allowed); a column claimed by several rows
+    goes to the smallest distance. -> (M,2) (row, column), sorted by row."""
+    dist = np.where(dist > max_dist, np.inf, dist)
     best = np.argmin(dist, axis=1)
-    bd = dist[np.arange(len(pred)), best]
+    bd = dist[np.arange(len(dist)), best]
     pi = np.flatnonzero(np.isfinite(bd))
     if len(pi) == 0:
-        return empty
+        return np.zeros((0, 2), np.int64)
     fi, bd = best[pi], bd[pi]
     order = np.lexsort((pi, bd, fi))
     pi, fi = pi[order], fi[order]

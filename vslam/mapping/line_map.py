@@ -7,14 +7,17 @@ here so the point-only path is untouched when it is off:
 - ``track``: after the point tracker, project the local map's lines with its pose, match them
   (``match_lines``), and refine the pose on points + lines (``backend.pose_lines``).
 - ``add_keyframe``: keep the keyframe's segments, attach the tracked line observations, create new lines
-  from the depth map (RGB-D, or stereo/synthetic frames that carry depth): depth sampled along each unmatched
-  segment on both sides of the edge (the nearer side: an occluding edge belongs to the foreground), a 3-D
-  line fitted to the samples and accepted when they lie on it.
+  from the RGB-D depth map: depth sampled along each unmatched segment on both sides of the edge (the nearer
+  side: an occluding edge belongs to the foreground), a 3-D line fitted to the samples and accepted when
+  they lie on it.
+- ``triangulate`` (local mapping, monocular / stereo, or with ``create: both``): the new keyframe's unmatched
+  segments matched to its covisible keyframes' unmatched segments by descriptor + epipolar overlap
+  (``features.lines.match_epipolar_segments``), the two back-projected planes intersected
+  (``geometry.plucker.triangulate_planes``), kept when the planes meet at a usable angle and the line lies
+  in front of both cameras. Such a line must be seen again (``two_view_min_obs``) or it is culled.
 - ``ba_problem`` / ``apply_ba``: the window's lines for local BA (``backend.line_ba``) and the results back.
 - ``write_ply``: the map lines as an open3d ``LineSet`` PLY (end points = extent seen by the first view).
 
-Monocular and stereo sequences get no line landmarks yet (lines are created from the RGB-D depth map;
-two-view line triangulation, ``geometry.plucker.triangulate_planes``, is not wired in), and skip detection.
 """
 
 from __future__ import annotations
@@ -28,9 +31,9 @@ import numpy as np
 from vslam.backend.line_ba import LineProblem
 from vslam.backend.pose_lines import refine_pose_points_lines
 from vslam.data.types import PinholeCamera, SensorKind
-from vslam.features.lines import LineConfig, LineExtractor, LineFeatures, match_lines
+from vslam.features.lines import LineConfig, LineExtractor, LineFeatures, match_epipolar_segments, match_lines
 from vslam.geometry import plucker as pl
-from vslam.geometry.se3 import inv_T
+from vslam.geometry.se3 import inv_T, skew
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +49,7 @@ class MapLine:
     desc: np.ndarray
     first_kf: int
     observations: dict[int, int] = field(default_factory=dict)
+    two_view: bool = False  # triangulated from two keyframes (held to ``two_view_min_obs``), not from depth
 
 
 class LineMap:
@@ -115,14 +119,13 @@ class LineSlam:
         self.lmap = LineMap()
         self.extractor = LineExtractor(cfg)
         self.K_L = pl.line_projection_matrix(cam.fx, cam.fy, cam.cx, cam.cy)
-        if sensor != "rgbd":
-            log.warning("lines: line landmarks are created from RGB-D depth only; %s runs with points only", sensor)
+        create = cfg.create if cfg.create != "auto" else ("depth" if sensor == "rgbd" else "two_view")
+        if create in ("depth", "both") and sensor != "rgbd":
+            log.warning("lines: create=%s needs an RGB-D depth map; %s lines are triangulated from two views", create, sensor)
+            create = "two_view"
+        self.from_depth, self.from_two_views = create in ("depth", "both"), create in ("two_view", "both")
 
     def detect(self, image: np.ndarray) -> LineFeatures:
-        """Segments of a frame; none without depth (monocular / stereo): no line landmark could use them,
-        and LSD costs ~40 ms (640x480) to ~250 ms (KITTI 1241x376) per frame on this machine."""
-        if self.sensor != "rgbd":
-            return LineFeatures.empty(self.extractor.dim)
         return self.extractor.detect(image, self.cam)
 
     # -- tracking -------------------------------------------------------------------------------------------
@@ -137,6 +140,8 @@ class LineSlam:
         ends = np.array([self.lmap.lines[int(i)].ends for i in lids])
         pred, vis = project_segments(ends, T_world_cam, self.cam)
         idx = np.flatnonzero(vis)
+        if len(idx) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
         desc = np.array([self.lmap.lines[int(i)].desc for i in lids[idx]]).reshape(len(idx), -1)
         m = match_lines(pred[idx], desc, lf, self.cfg)
         return lids[idx[m[:, 0]]], m[:, 1]
@@ -177,7 +182,7 @@ class LineSlam:
             for i in np.flatnonzero(line_ids >= 0):
                 if int(line_ids[i]) in self.lmap.lines:
                     self.lmap.add_observation(int(line_ids[i]), kf_id, int(i))
-        if depth_map is None or len(lf) == 0:
+        if depth_map is None or not self.from_depth or len(lf) == 0:
             return 0
         free = np.flatnonzero(self.lmap.kf_ids[kf_id] < 0)
         free = free[np.argsort(-lf.length[free], kind="stable")]
@@ -224,6 +229,42 @@ class LineSlam:
         a, b = pl.clip_to_segment(L[None], seg[None], T_world_cam, self.cam.K)
         return L, np.stack([a[0], b[0]])
 
+    def triangulate(self, kf, neighbors: list[int]) -> int:
+        """New lines from the keyframe's unmatched segments and each neighbour's (most covisible first), see
+        the module docstring; at most ``max_new_lines``. -> lines created."""
+        if not self.from_two_views or kf.id not in self.lmap.kf_feats:
+            return 0
+        lf, n = self.lmap.kf_feats[kf.id], 0
+        Kinv = np.linalg.inv(self.cam.K)
+        min_sin = np.sin(np.radians(self.cfg.tri_min_angle_deg))
+        for nb_id in neighbors:
+            nf = self.lmap.kf_feats.get(nb_id)
+            if nf is None or n >= self.cfg.max_new_lines:
+                continue
+            a = np.flatnonzero(self.lmap.kf_ids[kf.id] < 0)
+            b = np.flatnonzero(self.lmap.kf_ids[nb_id] < 0)
+            T_nb = self.map.keyframes[nb_id].T_world_cam
+            T_b_a = inv_T(T_nb) @ kf.T_world_cam
+            F = Kinv.T @ skew(T_b_a[:3, 3]) @ T_b_a[:3, :3] @ Kinv
+            m = match_epipolar_segments(lf.segs[a], lf.desc[a], nf.segs[b], nf.desc[b], F, self.cfg)
+            if len(m) == 0:
+                continue
+            ia, ib = a[m[:, 0]], b[m[:, 1]]
+            L, sin = pl.triangulate_planes(lf.segs[ia], nf.segs[ib], kf.T_world_cam, T_nb, self.cam.K)
+            ok = np.isfinite(L).all(axis=1) & (sin >= min_sin)
+            ea, eb = pl.clip_to_segment(L, lf.segs[ia], kf.T_world_cam, self.cam.K)
+            for T in (kf.T_world_cam, T_nb):  # both end points in front of both cameras
+                Tcw = inv_T(T)
+                for e in (ea, eb):
+                    ok &= (e @ Tcw[:3, :3].T + Tcw[:3, 3])[:, 2] > 0
+            order = np.flatnonzero(ok)
+            for j in order[np.argsort(-lf.length[ia[order]], kind="stable")][: self.cfg.max_new_lines - n]:
+                ml = self.lmap.add_line(L[j], np.stack([ea[j], eb[j]]), kf.id, int(ia[j]))
+                ml.two_view = True
+                self.lmap.add_observation(ml.id, nb_id, int(ib[j]))
+                n += 1
+        return n
+
     def ba_problem(self, kf_ids: list[int]) -> LineProblem | None:
         """Lines seen by the BA's keyframes (at most ``ba_max_lines``, most observed first) with >= 2 views."""
         lids = self.lmap.seen_by(kf_ids)
@@ -263,9 +304,14 @@ class LineSlam:
             for i in np.flatnonzero(~np.asarray(inliers, bool)):
                 self.lmap.remove_observation(int(lp.obs_line[i]), int(lp.obs_kf[i]))
 
-    def cull(self, cur_kf: int, age: int = 3) -> None:
-        """Lines still seen by one keyframe ``age`` keyframes after their creation are removed."""
-        for j in [j for j, ml in self.lmap.lines.items() if cur_kf - ml.first_kf >= age and len(ml.observations) < 2]:
+    def cull(self, cur_kf: int) -> None:
+        """Lines seen by too few keyframes ``cull_age`` keyframes after their creation are removed: a depth
+        line by one, a two-view line by fewer than ``two_view_min_obs`` (its two creating views agree by
+        construction, so only a third view confirms it)."""
+        def too_few(ml: MapLine) -> bool:
+            return len(ml.observations) < (self.cfg.two_view_min_obs if ml.two_view else 2)
+
+        for j in [j for j, ml in self.lmap.lines.items() if cur_kf - ml.first_kf >= self.cfg.cull_age and too_few(ml)]:
             self.lmap.remove_line(j)
 
     def write_ply(self, path: Path) -> Path:

@@ -94,6 +94,8 @@ class LocalMapper:
         new = self.create_depth_points(kf) if self.sensor != "mono" else []
         if self.cfg.triangulate == "all" or (self.cfg.triangulate == "mono" and self.sensor == "mono"):
             new += self.triangulate(kf, neighbors[: self.cfg.tri_neighbors])
+        if self.lines is not None:
+            self.lines.triangulate(kf, neighbors[: self.cfg.tri_neighbors])
         self.recent.extend(new)
         ms["create"] = (time.perf_counter() - t) * 1e3
         t = time.perf_counter()

@@ -19,7 +19,7 @@ from vslam.backend.ba import BackendConfig, StereoCamera
 from vslam.data.types import Calibration, Frame, SensorKind
 from vslam.dynamic import DynamicConfig, DynamicFilter
 from vslam.features import FeatureConfig, Features, make_extractor
-from vslam.features.lines import LineConfig
+from vslam.features.lines import LineConfig, LineFeatures
 from vslam.features.depth import depth_rgbd, depth_stereo, stereo_ur
 from vslam.features.stereo import depth_stereo_rectified, is_rectified
 from vslam.geometry.se3 import inv_T
@@ -98,6 +98,7 @@ class SlamTracker:
         self.lines = LineSlam(self.map, self.cam, self.stereo_cam, sensor, cfg.lines, cfg.backend) if cfg.lines.enabled else None
         self.mapper.lines = self.lines
         self._line_feats, self._line_ids = None, None
+        self._pre_init_lines: dict[int, LineFeatures] = {}  # monocular: segments of frames before the map exists
         self.loop = None
         if cfg.loop.enabled or cfg.load_map:
             from vslam.loop.closing import LoopCloser, attach_saved_map
@@ -149,6 +150,9 @@ class SlamTracker:
         t_dyn = time.perf_counter()
         if self.lines is not None:
             self._line_feats, self._line_ids = self.lines.detect(frame.image), None
+            if self.mono_init is not None and self.ref_kf is None:  # the initialiser's reference may be any recent frame
+                self._pre_init_lines[frame.index] = self._line_feats
+                self._pre_init_lines = dict(list(self._pre_init_lines.items())[-(self.mono_init.max_tries + 2):])
         t1 = time.perf_counter()
         depth = self._depth(frame, feats, right)
         ur = stereo_ur(feats.uv, depth, self.cam.fx, self.baseline) if self.baseline > 0 else np.full(len(feats), np.nan)
@@ -298,6 +302,12 @@ class SlamTracker:
                 return False
             self.ref_kf, self.last_kf_frame = kfs[1].id, self._n_frames
             self.T_world_cam = kfs[1].T_world_cam.copy()
+            if self.lines is not None:  # the two views' segments, so the first keyframes can triangulate lines
+                for k in kfs:
+                    lf = self._line_feats if k is kfs[1] else self._pre_init_lines.get(k.frame_index)
+                    if lf is not None:
+                        self.lines.add_keyframe(k.id, k.T_world_cam, lf, None, None)
+                self._pre_init_lines = {}
             if self.loop is not None:  # the reference view's image is gone: an image descriptor sees only the second
                 for k in kfs:
                     self.loop.add_keyframe(k, frame.image if k is kfs[1] else None)
@@ -378,8 +388,13 @@ def write_map_ply(path: Path, xyz: np.ndarray) -> Path:
     """(N,3) world points -> PLY point cloud (open3d imported here only: it is heavy and optional)."""
     import open3d as o3d
 
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    if len(xyz) == 0:  # open3d refuses an empty cloud (a monocular run that never initialised); the file still exists
+        Path(path).write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty double x\nproperty double y\n"
+                              "property double z\nend_header\n")
+        return path
     pcd = o3d.geometry.PointCloud()
-    pcd.points = o3d.utility.Vector3dVector(np.asarray(xyz, dtype=np.float64).reshape(-1, 3))
+    pcd.points = o3d.utility.Vector3dVector(xyz)
     if not o3d.io.write_point_cloud(str(path), pcd):
         raise OSError(f"{path}: could not write the map")
     return path
