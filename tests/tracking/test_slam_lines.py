@@ -15,7 +15,11 @@ SMALL = dict(width=320, height=240, fx=262.5, fy=262.5, n_movers=0)
 
 
 def _run(seq, cfg):
-    st = SlamTracker(seq.calibration, "rgbd", cfg)
+    return _run_sensor(seq, "rgbd", cfg)
+
+
+def _run_sensor(seq, sensor, cfg):
+    st = SlamTracker(seq.calibration, sensor, cfg)
     stamps, poses, tracked = [], [], []
     for f in seq:
         e = st.track(f)
@@ -63,3 +67,31 @@ def test_empty_line_map_still_writes_a_readable_ply(tmp_path):
     assert st.lines.stats()["lines"] == 0
     path = st.finish(tmp_path)["lines"]
     assert path.is_file() and len(o3d.io.read_line_set(str(path)).lines) == 0
+
+
+def test_stereo_lines_lie_on_the_corridor(tmp_path):
+    """Stereo has no depth map for lines: they come from two keyframes (``LineSlam.triangulate``). Every edge of the corridor is painted on its walls, floor
+    or ceiling, so every confirmed map line must lie on one of those planes. Checked at the line's point
+    nearest its first keyframe and 1 m along it (SLAM world = first camera; the ground truth's first pose
+    carries it over)."""
+    from vslam.data.synthetic.corridor import CORRIDOR_HALF_WIDTH, CORRIDOR_HEIGHT
+
+    seq = SyntheticSequence(SyntheticConfig(scene="corridor", n_frames=60, n_movers=0), sensor="stereo")
+    st, ate, tracked = _run_sensor(seq, "stereo", SlamConfig(lines=LineConfig(enabled=True)))
+    assert tracked.all() and ate < 0.01, ate
+    assert st.lines.from_two_views and not st.lines.from_depth
+    assert all(ml.two_view for ml in st.lines.lmap.lines.values())
+    seen = [ml for ml in st.lines.lmap.lines.values() if len(ml.observations) >= 3]  # confirmed by a third view
+    assert len(seen) >= 15, len(seen)
+    T0 = seq.groundtruth().poses[0]
+    off = []
+    for ml in seen:
+        d = ml.L[3:]
+        p0 = np.cross(d, ml.L[:3])  # the line's point nearest the origin (|d| = 1)
+        c = st.map.keyframes[ml.first_kf].T_world_cam[:3, 3]
+        p = p0 + ((c - p0) @ d) * d
+        e = np.stack([p, p + d]) @ T0[:3, :3].T + T0[:3, 3]
+        dist = np.stack([e[:, 1] - CORRIDOR_HALF_WIDTH, e[:, 1] + CORRIDOR_HALF_WIDTH, e[:, 2], e[:, 2] - CORRIDOR_HEIGHT], -1)
+        off.append(np.min(np.max(np.abs(dist), axis=0)))  # both points on the nearest common plane
+    off = np.array(off)
+    assert np.median(off) < 0.05 and np.mean(off < 0.15) >= 0.8, np.sort(off)

@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from vslam.features.matching import match_mutual
+from vslam.geometry.triangulation import fundamental
 
 log = logging.getLogger(__name__)
 
@@ -222,11 +223,7 @@ def epipolar_benchmark(methods: dict[str, Method], root: Path, cfg: FeatureBench
 
 def symmetric_epipolar(u1: np.ndarray, u2: np.ndarray, T_w1: np.ndarray, T_w2: np.ndarray, K: np.ndarray) -> np.ndarray:
     """(N,) pixel distance of each match to the other's epipolar line (max over both images)."""
-    T_21 = np.linalg.inv(T_w2) @ T_w1
-    R, t = T_21[:3, :3], T_21[:3, 3]
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    Ki = np.linalg.inv(K)
-    F = Ki.T @ tx @ R @ Ki  # x2^T F x1 = 0
+    F = fundamental(T_w1, T_w2, K)  # x2^T F x1 = 0
     h1, h2 = np.c_[u1, np.ones(len(u1))], np.c_[u2, np.ones(len(u2))]
     l2, l1 = h1 @ F.T, h2 @ F
     e = np.abs((h2 * l2).sum(axis=1))

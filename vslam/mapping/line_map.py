@@ -33,7 +33,8 @@ from vslam.backend.pose_lines import refine_pose_points_lines
 from vslam.data.types import PinholeCamera, SensorKind
 from vslam.features.lines import LineConfig, LineExtractor, LineFeatures, match_epipolar_segments, match_lines
 from vslam.geometry import plucker as pl
-from vslam.geometry.se3 import inv_T, skew
+from vslam.geometry.se3 import inv_T
+from vslam.geometry.triangulation import fundamental
 
 log = logging.getLogger(__name__)
 
@@ -121,7 +122,7 @@ class LineSlam:
         self.K_L = pl.line_projection_matrix(cam.fx, cam.fy, cam.cx, cam.cy)
         create = cfg.create if cfg.create != "auto" else ("depth" if sensor == "rgbd" else "two_view")
         if create in ("depth", "both") and sensor != "rgbd":
-            log.warning("lines: create=%s needs an RGB-D depth map; %s lines are triangulated from two views", create, sensor)
+            log.warning("lines: create=%s needs an RGB-D depth map; %s lines come from two views", create, sensor)
             create = "two_view"
         self.from_depth, self.from_two_views = create in ("depth", "both"), create in ("two_view", "both")
 
@@ -235,35 +236,44 @@ class LineSlam:
         if not self.from_two_views or kf.id not in self.lmap.kf_feats:
             return 0
         lf, n = self.lmap.kf_feats[kf.id], 0
-        Kinv = np.linalg.inv(self.cam.K)
-        min_sin = np.sin(np.radians(self.cfg.tri_min_angle_deg))
         for nb_id in neighbors:
             nf = self.lmap.kf_feats.get(nb_id)
             if nf is None or n >= self.cfg.max_new_lines:
                 continue
             a = np.flatnonzero(self.lmap.kf_ids[kf.id] < 0)
             b = np.flatnonzero(self.lmap.kf_ids[nb_id] < 0)
-            T_nb = self.map.keyframes[nb_id].T_world_cam
-            T_b_a = inv_T(T_nb) @ kf.T_world_cam
-            F = Kinv.T @ skew(T_b_a[:3, 3]) @ T_b_a[:3, :3] @ Kinv
-            m = match_epipolar_segments(lf.segs[a], lf.desc[a], nf.segs[b], nf.desc[b], F, self.cfg)
-            if len(m) == 0:
-                continue
-            ia, ib = a[m[:, 0]], b[m[:, 1]]
-            L, sin = pl.triangulate_planes(lf.segs[ia], nf.segs[ib], kf.T_world_cam, T_nb, self.cam.K)
-            ok = np.isfinite(L).all(axis=1) & (sin >= min_sin)
-            ea, eb = pl.clip_to_segment(L, lf.segs[ia], kf.T_world_cam, self.cam.K)
-            for T in (kf.T_world_cam, T_nb):  # both end points in front of both cameras
-                Tcw = inv_T(T)
-                for e in (ea, eb):
-                    ok &= (e @ Tcw[:3, :3].T + Tcw[:3, 3])[:, 2] > 0
-            order = np.flatnonzero(ok)
-            for j in order[np.argsort(-lf.length[ia[order]], kind="stable")][: self.cfg.max_new_lines - n]:
-                ml = self.lmap.add_line(L[j], np.stack([ea[j], eb[j]]), kf.id, int(ia[j]))
+            ia, ib, L, ends = self._two_view(lf, a, kf.T_world_cam, nf, b, self.map.keyframes[nb_id].T_world_cam)
+            for j in range(min(len(ia), self.cfg.max_new_lines - n)):
+                ml = self.lmap.add_line(L[j], ends[j], kf.id, int(ia[j]))
                 ml.two_view = True
                 self.lmap.add_observation(ml.id, nb_id, int(ib[j]))
                 n += 1
         return n
+
+    def _two_view(self, fa: LineFeatures, a: np.ndarray, T_a: np.ndarray, fb: LineFeatures, b: np.ndarray,
+                  T_b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Lines from segments ``a`` of keyframe a and ``b`` of keyframe b
+        -> (indices into fa, into fb, world lines (M,6), end points (M,2,3) on a's segments), longest first:
+        matched by ``match_epipolar_segments``, planes meeting at >= ``tri_min_angle_deg``, both end points in
+        front of both cameras and seen from the two centres at >= ``tri_min_parallax_deg`` (a far end point
+        leaves the line's direction to a pixel's guess, as a far point's depth)."""
+        K = self.cam.K
+        m = match_epipolar_segments(fa.segs[a], fa.desc[a], fb.segs[b], fb.desc[b], fundamental(T_a, T_b, K), self.cfg)
+        ia, ib = a[m[:, 0]], b[m[:, 1]]
+        L, sin = pl.triangulate_planes(fa.segs[ia], fb.segs[ib], T_a, T_b, K)
+        ok = np.isfinite(L).all(axis=1) & (sin >= np.sin(np.radians(self.cfg.tri_min_angle_deg)))
+        ea, eb = pl.clip_to_segment(L, fa.segs[ia], T_a, K)
+        cos_min = np.cos(np.radians(self.cfg.tri_min_parallax_deg))
+        for e in (ea, eb):
+            for T in (T_a, T_b):
+                Tcw = inv_T(T)
+                ok &= (e @ Tcw[:3, :3].T + Tcw[:3, 3])[:, 2] > 0
+            ra, rb = e - T_a[:3, 3], e - T_b[:3, 3]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ok &= np.sum(ra * rb, 1) / (np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1)) <= cos_min
+        keep = np.flatnonzero(ok)
+        keep = keep[np.argsort(-fa.length[ia[keep]], kind="stable")]
+        return ia[keep], ib[keep], L[keep], np.stack([ea[keep], eb[keep]], axis=1)
 
     def ba_problem(self, kf_ids: list[int]) -> LineProblem | None:
         """Lines seen by the BA's keyframes (at most ``ba_max_lines``, most observed first) with >= 2 views."""

@@ -19,8 +19,8 @@ import numpy as np
 from vslam.backend.ba import BackendConfig, BAProblem, StereoCamera, local_bundle_adjustment
 from vslam.data.types import PinholeCamera, SensorKind
 from vslam.features.matching import match_by_projection, match_epipolar, match_mutual
-from vslam.geometry.se3 import inv_T, skew
-from vslam.geometry.triangulation import triangulate_points
+from vslam.geometry.se3 import inv_T
+from vslam.geometry.triangulation import fundamental, triangulate_points
 from vslam.mapping.map import KeyFrame, Map
 from vslam.tracking.tracker import project
 
@@ -147,10 +147,8 @@ class LocalMapper:
         da, db = kf.features.desc[a], nb.features.desc[b]
         if self.cfg.tri_matching == "mutual":
             return match_mutual(da, db, ratio=0.75, max_dist=self.cfg.max_hamming)
-        T_b_a = inv_T(nb.T_world_cam) @ kf.T_world_cam
-        R, t = T_b_a[:3, :3], T_b_a[:3, 3]
-        Kinv = np.linalg.inv(self.cam.K)
-        F = Kinv.T @ skew(t) @ R @ Kinv
+        t = (inv_T(nb.T_world_cam) @ kf.T_world_cam)[:3, 3]
+        F = fundamental(kf.T_world_cam, nb.T_world_cam, self.cam.K)
         scale = nb.features.scale_factor ** nb.features.octave[b].astype(np.float64)
         epipole = None
         if abs(t[2]) > 1e-9:  # a's centre seen from b (ORB-SLAM: skip keypoints within 10 sqrt(scale) px)

@@ -204,8 +204,7 @@ class SlamTracker:
                 if self.vio is not None:
                     self.vio.new_keyframe(kf.id)
                 if self.lines is not None:
-                    self.lines.add_keyframe(kf.id, kf.T_world_cam, self._line_feats, self._line_ids,
-                                            frame.depth if self.sensor == "rgbd" else None)
+                    self.lines.add_keyframe(kf.id, kf.T_world_cam, self._line_feats, self._line_ids, self._line_depth(frame))
                 ms_map = self.mapper.process(kf, res.point_ids)
                 if self.vio is not None:
                     self.vio.after_keyframe(kf.id)
@@ -233,7 +232,14 @@ class SlamTracker:
             est.times_ms["dynamic"] = (t_dyn - t_feat) * 1e3
         if self.lines is not None:
             est.times_ms["lines"] = (t1 - t_dyn) * 1e3
+            est.n_lines = len(self._line_feats)
+            est.n_line_inliers = int((self._line_ids >= 0).sum()) if self._line_ids is not None else 0
         return est
+
+    def _line_depth(self, frame: Frame) -> np.ndarray | None:
+        """The depth map a keyframe's new lines are measured with (RGB-D); stereo and mono lines come from two
+        keyframes in local mapping (``LineSlam.triangulate``)."""
+        return frame.depth if self.sensor == "rgbd" else None
 
     def _drop_moving(self, res: TrackResult, feats: Features, depth: np.ndarray, ur: np.ndarray) -> tuple[Features, np.ndarray, np.ndarray]:
         """Geometric check on the tracked pose (``vslam.dynamic``): keypoints found moving leave the frame before
@@ -316,7 +322,7 @@ class SlamTracker:
             return False
         kf = self.map.add_keyframe(frame.index, frame.timestamp, np.eye(4), feats, depth, ur)
         if self.lines is not None:
-            self.lines.add_keyframe(kf.id, kf.T_world_cam, self._line_feats, None, frame.depth if self.sensor == "rgbd" else None)
+            self.lines.add_keyframe(kf.id, kf.T_world_cam, self._line_feats, None, self._line_depth(frame))
         self.mapper.process(kf, np.full(len(feats), -1, np.int64))
         if self.loop is not None:
             self.loop.add_keyframe(kf, frame.image)
