@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vslam.geometry.se3 import inv_T, skew
+
 # Rays whose sin^2(angle) is below this are treated as parallel (angle < ~0.0006 deg): the
 # midpoint is then numerically meaningless, and the point is left NaN.
 _PARALLEL_SIN2 = 1e-13
@@ -52,13 +54,12 @@ class TwoViewTriangulation:
         )
 
 
-def fundamental(T_world_c1: np.ndarray, T_world_c2: np.ndarray, K1: np.ndarray, K2: np.ndarray | None = None) -> np.ndarray:
-    """(3,3) F with x2^T F x1 = 0 for ideal pixels x1 of camera 1 (K1) and x2 of camera 2 (K2, default K1):
-    F = K2^-T [t]x R K1^-1 with (R, t) = T_c2_c1 (H&Z §9.2)."""
-    T_21 = np.linalg.inv(T_world_c2) @ T_world_c1
-    t = T_21[:3, 3]
-    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    return np.linalg.inv(K1 if K2 is None else K2).T @ tx @ T_21[:3, :3] @ np.linalg.inv(K1)
+def fundamental(T_world_c1: np.ndarray, T_world_c2: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(3,3) F with x2^T F x1 = 0 for ideal pixels x1 of view 1 and x2 of view 2, one camera K:
+    F = K^-T [t]x R K^-1 with (R, t) = T_c2_c1 (H&Z §9.2)."""
+    T_21 = inv_T(T_world_c2) @ T_world_c1
+    Kinv = np.linalg.inv(K)
+    return Kinv.T @ skew(T_21[:3, 3]) @ T_21[:3, :3] @ Kinv
 
 
 def as_pixels(uv: np.ndarray, name: str) -> np.ndarray:

@@ -31,7 +31,7 @@ import numpy as np
 from vslam.backend.line_ba import LineProblem
 from vslam.backend.pose_lines import refine_pose_points_lines
 from vslam.data.types import PinholeCamera, SensorKind
-from vslam.features.lines import LineConfig, LineExtractor, LineFeatures, match_epipolar_segments, match_lines
+from vslam.features.lines import LineConfig, LineExtractor, LineFeatures, end_depths, match_epipolar_segments, match_lines
 from vslam.geometry import plucker as pl
 from vslam.geometry.se3 import inv_T
 from vslam.geometry.triangulation import fundamental
@@ -148,8 +148,10 @@ class LineSlam:
         return lids[idx[m[:, 0]]], m[:, 1]
 
     def track(self, T_world_cam: np.ndarray, point_xyz: np.ndarray, point_uv: np.ndarray, point_ur: np.ndarray,
-              lf: LineFeatures, ref_kf: int, local_keyframes: int) -> tuple[np.ndarray, np.ndarray]:
-        """Refine the tracked pose with the point inliers and the matched lines.
+              lf: LineFeatures, ref_kf: int, local_keyframes: int, depth_map: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Refine the tracked pose with the point inliers and the matched lines (with ``depth_rows`` and a
+        depth map, also their virtual right-camera segments).
 
         -> (T_world_cam, line id per segment of ``lf`` (-1: none or outlier)).
         """
@@ -158,19 +160,34 @@ class LineSlam:
         if len(lids) == 0:
             return T_world_cam, line_ids
         L = np.array([self.lmap.lines[int(i)].L for i in lids])
+        segs_r = None
+        if self.cfg.depth_rows and depth_map is not None:
+            segs_r = self.right_segments(lf.raw[segi], lf.segs[segi], depth_map)
         T, _, lin = refine_pose_points_lines(T_world_cam, point_xyz, point_uv, point_ur, L, lf.segs[segi], self.K_L,
-                                             self.stereo_cam, self.backend, self.cfg.pixel_sigma, self.cfg.weight)
+                                             self.stereo_cam, self.backend, self.cfg.pixel_sigma, self.cfg.weight,
+                                             segs_r, self.cfg.depth_sigma_px)
         line_ids[segi[lin]] = lids[lin]
         return T, line_ids
 
     def refine_tracked(self, T_world_cam: np.ndarray, point_ids: np.ndarray, feats, ur: np.ndarray, lf: LineFeatures | None,
-                       ref_kf: int, local_keyframes: int) -> tuple[np.ndarray, np.ndarray | None]:
+                       ref_kf: int, local_keyframes: int, depth_map: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, np.ndarray | None]:
         """``track`` from the point tracker's result: point_ids (N,) map point per keypoint (-1 none)."""
         if lf is None:
             return T_world_cam, None
         kp = np.flatnonzero(point_ids >= 0)
         xyz = self.map.points_xyz(point_ids[kp])
-        return self.track(T_world_cam, xyz, feats.uv[kp], ur[kp], lf, ref_kf, local_keyframes)
+        return self.track(T_world_cam, xyz, feats.uv[kp], ur[kp], lf, ref_kf, local_keyframes, depth_map)
+
+    def right_segments(self, raw: np.ndarray, segs: np.ndarray, depth_map: np.ndarray) -> np.ndarray:
+        """(N,4) virtual right-camera segments (u - bf / z, v) of segments with depth at both ends (RGB-D, as
+        a point's uR), NaN rows where the depth along the segment is not one 3-D line."""
+        z = end_depths(raw, depth_map, self.cfg.depth_fit_m, self.cfg.min_depth_samples)
+        bf = self.cam.fx * self.stereo_cam.baseline
+        out = segs.astype(np.float64).copy()
+        out[:, 0] -= bf / z[:, 0]
+        out[:, 2] -= bf / z[:, 1]
+        return out
 
     # -- mapping --------------------------------------------------------------------------------------------
     def add_keyframe(self, kf_id: int, T_world_cam: np.ndarray, lf: LineFeatures, line_ids: np.ndarray | None,
