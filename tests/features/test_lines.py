@@ -118,24 +118,3 @@ def test_epipolar_segment_matching_pairs_the_same_3d_lines():
     # geometry alone is weak (a segment can slide along the epipolar lines: another depth), so with every b
     # descriptor moved to another segment only a few pairs that happen to fit both remain
     assert len(match_epipolar_segments(sa, desc, sb_cut[perm], np.roll(noisy[perm], 1, axis=0), F, cfg)) < 0.25 * len(m)
-
-
-def test_end_depths_follow_a_3d_line_and_refuse_a_depth_jump():
-    from vslam.features.lines import end_depths
-
-    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
-    h, w = 480, 640
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    # a slanted plane (inverse depth affine in the pixel: 1/z = 0.5 - 0.0008 (u - 320) / m), and a box
-    # 1 m nearer in rows 300-479, columns 0-199
-    depth = 1.0 / (0.5 - 0.0008 * (u - 320))
-    depth[300:, :200] -= 1.0
-    depth = depth.astype(np.float32)
-    segs = np.array([[250.0, 100, 450, 150],  # on the plane
-                     [100.0, 200, 100, 400],  # crosses into the box: two depths, no line
-                     [50.0, 350, 150, 420]])  # inside the box
-    z = end_depths(segs, depth, fit_m=0.03, min_samples=5)
-    truth = 1.0 / (0.5 - 0.0008 * (segs[:, [0, 2]] - 320))
-    np.testing.assert_allclose(z[0], truth[0], atol=0.02)
-    assert np.isnan(z[1]).all()
-    np.testing.assert_allclose(z[2], truth[2] - 1.0, atol=0.02)

@@ -7,12 +7,6 @@ Huber per observation (IRLS), chi2(2) test. The point rows reuse ``pose_only._li
 
 Parameterisation as in ``pose_only``: T_cam_world <- [Exp(w) | v] T_cam_world, so for a line
 n_c <- n_c + w x n_c + v x d_c, i.e. dn_c/d(w, v) = [-[n_c]x, -[d_c]x].
-
-Depth of a line (RGB-D, ``segs_r``): like a point's depth enters as the virtual right coordinate uR = uL -
-bf / z (ORB-SLAM2's RGB-D trick), a segment whose end points have depth gives a virtual right-camera segment
-(u - bf / z, v); its end-point distances to the line projected into the right camera (T_r_c = [I | -b e_x]),
-minus the left distances (see ``_Right.block``), are two more rows. The right camera moves with the left:
-for T_r_w = T_r_c T_c_w, a left perturbation delta of T_c_w is Ad(T_r_c) delta = (w, v + [t_r_c]x w) of T_r_w.
 """
 
 from __future__ import annotations
@@ -25,20 +19,17 @@ from vslam.backend.projection import chi2_thresholds, measurement_matrix
 from vslam.geometry.se3 import inv_T
 
 _CHI2_LINE = 5.991  # 95 % of chi2(2)
-_CHI2_LINE_DEPTH = 9.488  # 95 % of chi2(4): with the right camera's two distances
 
 
 def refine_pose_points_lines(
     T_world_cam: np.ndarray, pts_world: np.ndarray, uv: np.ndarray, ur: np.ndarray,
     lines_world: np.ndarray, segs: np.ndarray, K_L: np.ndarray, camera, cfg, line_sigma: float = 1.0,
-    line_weight: float = 1.0, segs_r: np.ndarray | None = None, right_sigma: float = 1.0,
+    line_weight: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """-> (T_world_cam (4,4), point inliers (N,), line inliers (L,)).
 
     Points as in ``optimize_pose`` (world (N,3), uv (N,2), ur (N,) NaN = mono). lines_world: (L,6) Plücker;
     segs: (L,4) observed segments, ideal pixels; line_sigma px; line_weight scales the line rows' information.
-    segs_r: (L,4) virtual right-camera segments of the lines with depth (NaN rows: none), baseline
-    ``camera.baseline``, disparity std ``right_sigma`` px; a line's chi2 test then covers its four rows.
     With fewer than 3 points the line rows must carry the pose; with nothing usable the input comes back.
     """
     T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
@@ -55,13 +46,6 @@ def refine_pose_points_lines(
     thr = chi2_thresholds(S, cfg.chi2_mono, cfg.chi2_stereo)
     L, G = Lw[vl], sg[vl]
     lw = np.sqrt(line_weight) / line_sigma
-    R_ = None
-    if segs_r is not None and camera.baseline > 0:
-        gr = np.asarray(segs_r, dtype=np.float64).reshape(-1, 4)[vl]
-        has = np.isfinite(gr).all(axis=1)
-        if has.any():
-            R_ = _Right(np.where(has[:, None], gr, 0.0), has, np.array([-camera.baseline, 0.0, 0.0]),
-                        np.sqrt(line_weight) / right_sigma)
     pin, lin = np.zeros(len(pts), bool), np.zeros(len(Lw), bool)
     T_cw = inv_T(T_world_cam)
     if len(P) + len(L) < _MIN_OBS:
@@ -71,53 +55,19 @@ def refine_pose_points_lines(
         if ap.sum() + al.sum() < _MIN_OBS:
             break
         k = cfg.huber_k if rnd < cfg.pose_rounds - 1 else None
-        T_cw = _lm(T_cw, P[ap], Z[ap], S[ap], w[ap], L[al], G[al], K_L, lw, camera, k, cfg.pose_iterations,
-                   R_.subset(al) if R_ is not None else None)
+        T_cw = _lm(T_cw, P[ap], Z[ap], S[ap], w[ap], L[al], G[al], K_L, lw, camera, k, cfg.pose_iterations)
         ap = _classify(T_cw, P, Z, S, 1.0 / w, thr, camera) if len(P) else ap
-        al = _line_chi2(T_cw, L, G, K_L, lw, R_)
+        al = _line_chi2(T_cw, L, G, K_L, lw) <= _CHI2_LINE
     pin[vp], lin[vl] = ap, al
     return inv_T(T_cw), pin, lin
 
 
-class _Right:
-    """Virtual right-camera rows: segs (L,4) (0 where ``has`` is False), has (L,), t_rc (3,) = T_r_c's
-    translation, lw whitening (1 / disparity std)."""
-
-    def __init__(self, segs, has, t_rc, lw):
-        self.segs, self.has, self.t_rc, self.lw = segs, has, t_rc, lw
-
-    def subset(self, keep: np.ndarray) -> _Right:
-        return _Right(self.segs[keep], self.has[keep], self.t_rc, self.lw)
-
-    def block(self, T_cw, L, G, K_L, jac: bool):
-        """Whitened rows (L,2) (0 without depth) and, with jac, d rows / d(w, v) of T_c_w (L,2,6).
-
-        A row is the right end point's distance minus the left one's (G): a right end point is the left one
-        shifted by its disparity, so the two distances share the left end point's noise; their difference
-        carries the depth alone and is whitened by the disparity std (as a point's uR in ``pose_only``)."""
-        T_rw = T_cw.copy()
-        T_rw[:3, 3] += self.t_rc
-        er, Jr, _ = _line_block(T_rw, L, self.segs, K_L, 1.0, jac)
-        el, Jl, _ = _line_block(T_cw, L, G, K_L, 1.0, jac)
-        e = np.where(self.has[:, None], (er - el) * self.lw, 0.0)
-        if not jac:
-            return e, None
-        Jr[:, :, :3] += Jr[:, :, 3:] @ _skew_stack(self.t_rc[None])[0]  # Ad(T_r_c): v_r = v + [t_r_c]x w
-        return e, np.where(self.has[:, None, None], (Jr - Jl) * self.lw, 0.0)
-
-
-def _line_chi2(T_cw, L, G, K_L, lw, right: _Right | None) -> np.ndarray:
-    """(L,) bool: the chi2 test of each line's end-point distances (two, or four with a right segment)."""
+def _line_chi2(T_cw, L, G, K_L, lw) -> np.ndarray:
     if len(L) == 0:
-        return np.zeros(0, bool)
+        return np.zeros(0)
     e, _, _ = _line_block(T_cw, L, G, K_L, lw, False)
     chi2 = np.sum(e * e, axis=1)
-    thr = np.full(len(L), _CHI2_LINE)
-    if right is not None:
-        er, _ = right.block(T_cw, L, G, K_L, False)
-        chi2 = chi2 + np.sum(er * er, axis=1)
-        thr[right.has] = _CHI2_LINE_DEPTH
-    return np.where(np.isfinite(chi2), chi2, np.inf) <= thr
+    return np.where(np.isfinite(chi2), chi2, np.inf)
 
 
 def _line_block(T_cw, L, G, K_L, lw, jac: bool):
@@ -141,7 +91,7 @@ def _line_block(T_cw, L, G, K_L, lw, jac: bool):
     return e, J, None
 
 
-def _cost_H_g(R, t, P, Z, S, w, L, G, K_L, lw, camera, huber_k, right: _Right | None = None):
+def _cost_H_g(R, t, P, Z, S, w, L, G, K_L, lw, camera, huber_k):
     cost, H, g = 0.0, np.zeros((6, 6)), np.zeros(6)
     if len(P):
         cost, H, g = _linearize(R, t, np.ascontiguousarray(P.T), np.ascontiguousarray(Z.T), S.astype(np.float64), w,
@@ -150,9 +100,6 @@ def _cost_H_g(R, t, P, Z, S, w, L, G, K_L, lw, camera, huber_k, right: _Right | 
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, t
         e, J, _ = _line_block(T, L, G, K_L, lw, True)
-        if right is not None:  # one Huber weight per line over its 2 or 4 distances
-            er, Jr = right.block(T, L, G, K_L, True)
-            e, J = np.concatenate([e, er], axis=1), np.concatenate([J, Jr], axis=1)
         a = np.linalg.norm(e, axis=1)
         a = np.where(np.isfinite(a), a, 0.0)
         e, J = np.nan_to_num(e), np.nan_to_num(J)
@@ -170,6 +117,6 @@ def _cost_H_g(R, t, P, Z, S, w, L, G, K_L, lw, camera, huber_k, right: _Right | 
     return cost, H, g
 
 
-def _lm(T_cw, P, Z, S, w, L, G, K_L, lw, camera, huber_k, iterations, right: _Right | None = None) -> np.ndarray:
+def _lm(T_cw, P, Z, S, w, L, G, K_L, lw, camera, huber_k, iterations) -> np.ndarray:
     """LM on points + lines (``pose_only.lm_pose`` with this cost)."""
-    return lm_pose(T_cw, lambda R, t: _cost_H_g(R, t, P, Z, S, w, L, G, K_L, lw, camera, huber_k, right), iterations)
+    return lm_pose(T_cw, lambda R, t: _cost_H_g(R, t, P, Z, S, w, L, G, K_L, lw, camera, huber_k), iterations)

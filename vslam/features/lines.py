@@ -71,10 +71,6 @@ class LineConfig:
     tri_min_parallax_deg: float = 3.0
     two_view_min_obs: int = 3  # a two-view line still seen by fewer keyframes ``cull_age`` keyframes later goes
     cull_age: int = 3
-    # RGB-D: a tracked segment with depth along it also gives a virtual right-camera segment (u - bf / z), two
-    # more distances in pose-only refinement with this std (px) -- a line's depth, as a point's uR
-    depth_rows: bool = False
-    depth_sigma_px: float = 1.0
 
 
 @dataclass
@@ -262,51 +258,6 @@ def match_epipolar_segments(segs_a: np.ndarray, desc_a: np.ndarray, segs_b: np.n
     shorter = np.minimum(span, lb[None, :])
     ok = sin_ok & (span > 0.25 * lb[None, :]) & (span < 4.0 * lb[None, :]) & (overlap >= cfg.min_overlap * shorter)
     return _best_unique(np.where(ok, _desc_dist(desc_a, desc_b), np.inf), cfg.max_desc_dist)
-
-
-def end_depths(raw: np.ndarray, depth_map: np.ndarray, fit_m: float, min_samples: int, n: int = 11) -> np.ndarray:
-    """(N,4) raw segments + depth map (H,W) metres (0 / NaN invalid) -> (N,2) depth at the two end points,
-    NaN where the samples do not lie on one 3-D line.
-
-    Depth is sampled at ``n`` points along each segment, 2 px to either side of the edge (the nearer side:
-    an occluding edge belongs to the foreground, as ``LineSlam.fit_from_depth``); along the image of a 3-D
-    line the inverse depth is affine in the image parameter, so 1/z = a + b t is fitted by least squares and
-    accepted when every sample is within ``fit_m`` + 1 % of its depth of the fit. Vectorised over segments.
-    """
-    raw = np.asarray(raw, dtype=np.float64).reshape(-1, 4)
-    out = np.full((len(raw), 2), np.nan)
-    if len(raw) == 0:
-        return out
-    h, w = depth_map.shape[:2]
-    t = np.linspace(0.05, 0.95, n)
-    d = raw[:, 2:] - raw[:, :2]
-    nrm = np.stack([-d[:, 1], d[:, 0]], axis=1) / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
-    zs = []
-    for off in (-2.0, 2.0):
-        p = raw[:, None, :2] + t[None, :, None] * d[:, None, :] + off * nrm[:, None, :]
-        ix = np.clip(np.round(p).astype(np.int64), 0, [w - 1, h - 1])
-        z = depth_map[ix[..., 1], ix[..., 0]].astype(np.float64)
-        zs.append(np.where(np.isfinite(z) & (z > 0.1), z, np.nan))
-    z = np.fmin(zs[0], zs[1])  # (N,n)
-    ok = np.isfinite(z)
-    cnt = ok.sum(axis=1)
-    iz = np.where(ok, 1.0 / np.where(ok, z, 1.0), 0.0)
-    tw = np.where(ok, t[None, :], 0.0)
-    # weighted normal equations of 1/z = a + b t per segment
-    s0, s1, s2 = cnt.astype(np.float64), tw.sum(1), (tw * tw).sum(1)
-    y0, y1 = iz.sum(1), (iz * tw).sum(1)
-    det = s0 * s2 - s1 * s1
-    good = (cnt >= min_samples) & (det > 1e-9)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a = (s2 * y0 - s1 * y1) / det
-        b = (s0 * y1 - s1 * y0) / det
-        zf = 1.0 / (a[:, None] + b[:, None] * t[None, :])
-        dev = np.where(ok, np.abs(z - zf), 0.0)
-        good &= np.all(dev <= fit_m + 0.01 * np.where(ok, z, 0.0), axis=1) & np.all(zf > 0.1, axis=1)
-        z0, z1 = 1.0 / a, 1.0 / (a + b)
-    good &= (z0 > 0.1) & (z1 > 0.1)
-    out[good] = np.stack([z0, z1], axis=1)[good]
-    return out
 
 
 def _desc_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:

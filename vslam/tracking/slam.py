@@ -182,8 +182,7 @@ class SlamTracker:
                 res = self.loop.relocalise(self.tracker, feats, ur, frame.image) or res
             if res.ok and self.lines is not None:  # issue 6: the pose on points + matched map lines
                 res.T_world_cam, self._line_ids = self.lines.refine_tracked(
-                    res.T_world_cam, res.point_ids, feats, ur, self._line_feats, self.ref_kf, self.cfg.tracking.local_keyframes,
-                    self._line_depth(frame))
+                    res.T_world_cam, res.point_ids, feats, ur, self._line_feats, self.ref_kf, self.cfg.tracking.local_keyframes)
             est.n_matches, est.n_inliers, est.tracked = res.n_matches, res.n_inliers, res.ok
             est.status, est.pose_cov = self._status(res.ok, res.method, depth), res.cov
             if res.ok:
