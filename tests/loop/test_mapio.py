@@ -84,3 +84,18 @@ def test_damaged_files_are_one_line_errors(saved, tmp_path):
     np.savez(gap, **arrays)
     with pytest.raises(MapFileError, match="gap.npz: corrupt map file"):
         load_map(gap)
+
+
+def test_saved_map_continues_with_lines_on(saved):
+    """Map files hold points only; with lines on, the loaded map gets fresh line landmarks on its own
+    keyframes (the line half must use the loaded map, not the empty one it was built with)."""
+    from vslam.features.lines import LineConfig
+
+    st0, frames, poses = room_map()
+    cfg = dataclasses.replace(SlamConfig(), load_map=str(saved), lines=LineConfig(enabled=True, min_length_px=15.0))
+    s = seq(60)
+    st = SlamTracker(s.calibration, "rgbd", cfg)
+    assert st.lines.map is st.map
+    out = np.array([st.track(f).T_world_cam for f in list(s)[15:]])  # past the saved frames: new keyframes
+    assert len(st.map.keyframes) > len(st0.map.keyframes) and st.lines.stats()["lines"] > 0
+    np.testing.assert_allclose(out[:25, :3, 3], poses[15:40, :3, 3], atol=0.03)

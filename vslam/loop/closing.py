@@ -171,12 +171,15 @@ class LoopCloser:
         return [kf.id, *self.map.covisible_keyframes(kf.id, self.cfg.group_min_shared, self.cfg.fuse_neighbors)]
 
     def _points_follow(self, delta: dict[int, np.ndarray]) -> None:
-        """Every map point moves with its reference keyframe: x <- D x, D (4,4) rigid or similarity per keyframe."""
+        """Every map point (and line) moves with its reference keyframe: x <- D x, D (4,4) rigid or similarity
+        per keyframe."""
         m = self.map
         for mp in m.points.values():
             ref = mp.first_kf if mp.first_kf in m.keyframes else min(mp.observations)
             D = delta[ref]
             mp.xyz = D[:3, :3] @ mp.xyz + D[:3, 3]
+        if self.mapper is not None and self.mapper.lines is not None:
+            self.mapper.lines.follow(delta)
 
     def loop_scale(self, kf: KeyFrame, match: LoopMatch) -> float | None:
         """Monocular: length in the old (candidate-side) map per length in the query's drifted map -- the median
@@ -301,6 +304,8 @@ def attach_saved_map(slam, path: str) -> None:
 
     loaded = load_map(path)
     slam.map = slam.tracker.map = slam.mapper.map = slam.loop.map = slam.frames.map = loaded.map
+    if slam.lines is not None:  # map files hold points only: the line map starts empty on the loaded keyframes
+        slam.lines.map = loaded.map
     if loaded.database.dim != slam.loop.db.dim:
         raise ValueError(f"{path}: place descriptors of dimension {loaded.database.dim}, this config uses {slam.loop.db.dim}")
     slam.loop.db = loaded.database

@@ -112,6 +112,14 @@ def project_segments(ends: np.ndarray, T_world_cam: np.ndarray, cam: PinholeCame
     return uv.reshape(-1, 4), ok
 
 
+def moved_line(L: np.ndarray, ends: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Line (6,) and its end points (2,3) under x <- D x, D (4,4) = [s R | t]: two points of the line moved and
+    joined again (orientation kept), |d| = 1."""
+    p0 = pl.closest_point(pl.normalize(L))
+    pts = np.stack([p0, p0 + pl.normalize(L)[3:], *ends]) @ D[:3, :3].T + D[:3, 3]
+    return pl.normalize(pl.from_points(pts[0], pts[1])), pts[2:]
+
+
 class LineSlam:
     """The line half of the SLAM system; see the module docstring."""
 
@@ -316,6 +324,20 @@ class LineSlam:
         if inliers is not None:
             for i in np.flatnonzero(~np.asarray(inliers, bool)):
                 self.lmap.remove_observation(int(lp.obs_line[i]), int(lp.obs_kf[i]))
+
+    def follow(self, delta: dict[int, np.ndarray]) -> None:
+        """Every map line moves with its first keyframe, as the points do after a loop correction: x <- D x with
+        D (4,4) = [s R | t] per keyframe (rigid, or a similarity for a monocular loop)."""
+        for ml in self.lmap.lines.values():
+            ref = ml.first_kf if ml.first_kf in delta else min((k for k in ml.observations if k in delta), default=None)
+            if ref is not None:
+                ml.L, ml.ends = moved_line(ml.L, ml.ends, delta[ref])
+
+    def transform(self, T: np.ndarray, scale: float) -> None:
+        """The whole line map into a new world, x_new = R (scale x_old) + t (``vio.transform_map``)."""
+        D = np.array(T, dtype=np.float64)
+        D[:3, :3] = D[:3, :3] * scale
+        self.follow({k: D for k in self.map.keyframes})
 
     def cull(self, cur_kf: int) -> None:
         """Lines seen by too few keyframes ``cull_age`` keyframes after their creation are removed: a depth

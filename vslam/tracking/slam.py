@@ -263,6 +263,8 @@ class SlamTracker:
         T, scale = out
         self.T_world_cam = self.vio.transform_pose(self.T_world_cam, T, scale)  # type: ignore[union-attr]
         self.frames.transform(T, scale)  # monocular: the frames tracked so far were at the old map scale
+        if self.lines is not None:
+            self.lines.transform(T, scale)
         self.velocity = self.velocity.copy()
         self.velocity[:3, 3] *= scale
         if self.vio.method == "dynamic" and self.ref_kf is not None:  # type: ignore[union-attr]  # (and refinements)

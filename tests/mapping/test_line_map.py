@@ -1,0 +1,76 @@
+"""Line landmarks follow their keyframe when a loop correction (rigid or similarity) or an inertial
+rescale moves the map."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vslam.backend.pose_graph import sim_matrix, sim_parts
+from vslam.geometry import plucker as pl
+from vslam.geometry.se3 import make_T, so3_exp
+from vslam.mapping.line_map import LineMap, LineSlam, moved_line
+
+K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+K_L = pl.line_projection_matrix(500.0, 500.0, 320.0, 240.0)
+
+
+def _pose(rng, t_scale=2.0):
+    return make_T(so3_exp(rng.normal(0, 0.3, 3)), rng.normal(0, t_scale, 3))
+
+
+def _segment_seen_from(T, rng):
+    """A 3-D segment 3-6 m in front of camera T -> (L (6,), ends (2,3), its image segment (4,))."""
+    c = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(3, 6)])
+    d = rng.normal(size=3)
+    ends_c = np.stack([c - 0.5 * d, c + 0.5 * d])
+    ends = ends_c @ T[:3, :3].T + T[:3, 3]
+    uv = ends_c @ K.T
+    seg = (uv[:, :2] / uv[:, 2:]).reshape(4)
+    return pl.normalize(pl.from_points(ends[0], ends[1])), ends, seg
+
+
+def _distances(L, T, seg):
+    return pl.segment_distances(seg[None], pl.project(L[None], T, K_L))[0]
+
+
+def test_moved_line_keeps_its_image_in_the_moved_keyframe():
+    rng = np.random.default_rng(0)
+    for scale in (1.0, 0.7, 1.4):  # rigid and similarity corrections
+        T0 = _pose(rng)
+        L, ends, seg = _segment_seen_from(T0, rng)
+        S_after = sim_matrix(_pose(rng), scale)
+        D = S_after @ np.linalg.inv(sim_matrix(T0))  # what the loop closer hands to ``follow``
+        L2, ends2 = moved_line(L, ends, D)
+        R, t, _ = sim_parts(S_after)
+        T1 = make_T(R, t)  # the keyframe's corrected pose
+        np.testing.assert_allclose(_distances(L2, T1, seg), 0.0, atol=1e-7)
+        assert abs(pl.constraint(L2)) < 1e-12 and abs(np.linalg.norm(L2[3:]) - 1.0) < 1e-12
+        np.testing.assert_allclose(ends2, ends @ D[:3, :3].T + D[:3, 3], atol=1e-12)
+        assert (L2[3:] @ (ends2[1] - ends2[0])) > 0  # orientation kept
+
+
+def test_follow_moves_each_line_with_its_first_keyframe_and_transform_moves_all():
+    rng = np.random.default_rng(1)
+    ls = LineSlam.__new__(LineSlam)  # only the line map is needed here
+    ls.lmap = LineMap()
+    poses = {0: _pose(rng), 1: _pose(rng)}
+    segs = {}
+    for kf in (0, 1):
+        ls.lmap.kf_feats[kf] = type("F", (), {"desc": np.zeros((2, 4), np.float32)})()
+        ls.lmap.kf_ids[kf] = np.full(2, -1, np.int64)
+    for kf in (0, 1):
+        L, ends, seg = _segment_seen_from(poses[kf], rng)
+        ml = ls.lmap.add_line(L, ends, kf, 0)
+        segs[ml.id] = (kf, seg)
+    delta = {0: sim_matrix(_pose(rng)), 1: sim_matrix(_pose(rng))}
+    new_poses = {k: delta[k] @ poses[k] for k in poses}
+    ls.follow(delta)
+    for lid, (kf, seg) in segs.items():
+        np.testing.assert_allclose(_distances(ls.lmap.lines[lid].L, new_poses[kf], seg), 0.0, atol=1e-7)
+    # the whole map into a new world at another scale (monocular inertial initialisation)
+    ls.map = type("M", (), {"keyframes": poses})()
+    T, s = _pose(rng), 2.5
+    before = {lid: ml.ends.copy() for lid, ml in ls.lmap.lines.items()}
+    ls.transform(T, s)
+    for lid, ml in ls.lmap.lines.items():
+        np.testing.assert_allclose(ml.ends, (s * before[lid]) @ T[:3, :3].T + T[:3, 3], atol=1e-12)
