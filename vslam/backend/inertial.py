@@ -9,8 +9,10 @@ SLAM world is the first keyframe's camera frame, not z up.
 Graph: every visual observation of the window (``BAProblem``, poses given as T_world_cam and converted
 here), one ``CombinedImuFactor(X(i), V(i), X(j), V(j), B(i), B(j), pim)`` between consecutive keyframes of
 the *IMU chain* (the newest keyframes in time order; the bias random walk lives inside the factor), held
-poses for the fixed keyframes, and priors on V and B of the chain's oldest keyframe. LM then chi2
-classification and a second LM round without the visual outliers, as in ``local_bundle_adjustment``.
+poses for the fixed keyframes, and priors on V and B of the chain's oldest keyframe; with line landmarks
+(``BAProblem.lines``) their structureless window factor on the body poses (``line_window``, T_body_cam).
+LM then chi2 classification and a second LM round without the visual outliers, as in
+``local_bundle_adjustment``.
 
 The chain's oldest state (why priors from marginal covariances): the window slides one keyframe at a
 time, and the IMU factor that tied the oldest keyframe to its predecessor is dropped. A fixed-lag smoother
@@ -39,6 +41,7 @@ from gtsam.symbol_shorthand import B, L, V, X
 
 from vslam.backend import factors as fx
 from vslam.backend.ba import BackendConfig, BAProblem, BAResult, StereoCamera, _graph, _levenberg_marquardt
+from vslam.backend.line_ba import camera_K_L, factors_within, line_chi2, line_estimates, line_terms
 from vslam.backend.window import dense_window
 from vslam.data.types import ImuSamples
 from vslam.geometry.se3 import inv_T
@@ -154,19 +157,22 @@ def visual_inertial_bundle_adjustment(problem: BAProblem, chain: ImuChain, camer
                                          gtsam.noiseModel.Gaussian.Covariance(cov_v)))
     other.append(gtsam.PriorFactorConstantBias(B(k0), bias_object(chain.bias[0]),
                                                gtsam.noiseModel.Gaussian.Covariance(cov_b)))
-    graph = _graph(facs + other)
+    line_facs, line_handle = [], None
+    if problem.lines is not None:  # the window's lines on the body poses (``line_window`` with T_body_cam)
+        line_facs, _, line_handle = line_terms(problem.lines, set(used_kf), camera_K_L(camera), cfg.huber_k, T_bc)
+    graph = _graph(facs + other + line_facs)
     t1 = time.perf_counter()
 
     est, _ = _levenberg_marquardt(graph, values, icfg.max_iterations)
     Twc, P = _arrays(est, win, T_bc)
     keep = win.chi2(Twc, P, camera)[idx] <= win.thr[idx]
     if icfg.refine_iterations > 0 and keep.any() and not keep.all():
-        graph = _graph([f for f, k in zip(facs, keep.tolist()) if k] + other)
         kept_pts = set(win.pt[idx[keep]].tolist())
         start = gtsam.Values(est)
         for j in used_pt:
             if j not in kept_pts:  # no factor left: keeps its first-round value
                 start.erase(L(j))
+        graph = _graph([f for f, k in zip(facs, keep.tolist()) if k] + other + factors_within(line_facs, start))
         est2, _ = _levenberg_marquardt(graph, start, icfg.refine_iterations)
         est = gtsam.Values(est)
         est.update(est2)
@@ -180,6 +186,12 @@ def visual_inertial_bundle_adjustment(problem: BAProblem, chain: ImuChain, camer
     for i, k in enumerate(win.kf_ids.tolist()):
         if k not in problem.fixed and k not in held:
             ba.poses[int(k)] = Twc[i]
+    if line_handle is not None:
+        ba.lines = line_estimates(est, line_handle)
+        cam_poses = {int(k): Twc[i] for i, k in enumerate(win.kf_ids.tolist())}
+        for k in used_kf:  # chain keyframes without a point in the window
+            cam_poses.setdefault(int(k), est.atPose3(X(k)).matrix() @ T_bc)
+        ba.line_inliers = line_chi2(problem.lines, cam_poses, ba.lines, camera_K_L(camera)) <= problem.lines.chi2
     out = ViResult(ba)
     for k in chain_ids:
         out.velocity[k] = np.asarray(est.atVector(V(k)), dtype=np.float64).reshape(3)

@@ -48,11 +48,14 @@ class LineProblem:
     inner_iterations: int = 1
 
 
-def line_terms(lp: LineProblem, kf_in_graph: set[int], K_L: np.ndarray, huber_k: float
-               ) -> tuple[list[gtsam.NonlinearFactor], gtsam.Values, LineWindow | list[int]]:
+def line_terms(lp: LineProblem, kf_in_graph: set[int], K_L: np.ndarray, huber_k: float,
+               T_body_cam: np.ndarray | None = None) -> tuple[list[gtsam.NonlinearFactor], gtsam.Values, LineWindow | list[int]]:
     """Factors, initial values and a handle for ``line_estimates``: lines with >= 2 observations in
     keyframes of the graph. ``mode`` "window": one structureless factor (``line_window``), no values;
-    "landmark": a ``line_factor`` + weak priors per line, lines as LU/LW values."""
+    "landmark": a ``line_factor`` + weak priors per line, lines as LU/LW values. T_body_cam: the graph's
+    pose variables are body poses (visual-inertial BA; "window" mode only)."""
+    if T_body_cam is not None and lp.mode != "window":
+        raise ValueError("line landmarks on body poses (visual-inertial BA) need LineProblem.mode 'window'")
     facs: list[gtsam.NonlinearFactor] = []
     values = gtsam.Values()
     kf = np.asarray(lp.obs_kf, dtype=np.int64)
@@ -70,7 +73,7 @@ def line_terms(lp: LineProblem, kf_in_graph: set[int], K_L: np.ndarray, huber_k:
         win = LineWindow(np.array([lp.lines[j] for j in ids.tolist()]).reshape(-1, 6),
                          np.array([idx[j] for j in ln[ok].tolist()], dtype=np.int64),
                          np.array([pos[k] for k in kf[ok].tolist()], dtype=np.int64), seg[ok],
-                         [X(k) for k in pose_keys], K_L, lp.sigma, huber_k, lp.inner_iterations)
+                         [X(k) for k in pose_keys], K_L, lp.sigma, huber_k, lp.inner_iterations, T_body_cam)
         win.line_ids = ids.tolist()  # window row -> line id
         f = win.factor()
         return ([f] if f is not None else []), values, win
@@ -94,7 +97,7 @@ def factors_within(facs: list[gtsam.NonlinearFactor], values: gtsam.Values) -> l
 def line_estimates(est: gtsam.Values, handle: LineWindow | list[int]) -> dict[int, np.ndarray]:
     """{line id: (6,) Plücker, |d| = 1} for the lines in the graph, at the estimate ``est``."""
     if isinstance(handle, LineWindow):
-        Twc = np.array([est.atPose3(k).matrix() for k in handle.pose_keys]).reshape(-1, 4, 4)
+        Twc = handle.camera_poses(est)
         if len(Twc):
             handle.U, handle.w, _ = handle.refine_lines(Twc, 1)  # LM's last linearisation left them converged
         return dict(zip(handle.line_ids, handle.lines()))

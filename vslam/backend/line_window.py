@@ -20,7 +20,9 @@ factors); the same 60-line window then costs 1.3-1.7x its points alone (233 -> 3
 
 Residual rows are fixed at construction (sum over lines of 2 n_j - 4), as GTSAM requires.
 Pose Jacobian (right retraction T_world_cam Exp(omega, v)): dn_c/d(omega, v) = [[n_c]x, [d_c]x], see
-``line_factor``.
+``line_factor``. With ``T_body_cam`` (visual-inertial BA, whose pose variables are body poses) the camera is
+T_world_body T_body_cam, and a right perturbation xi of the body pose is Ad(T_cam_body) xi of the camera's,
+so the rows are J_cam Ad(T_cam_body).
 """
 
 from __future__ import annotations
@@ -44,7 +46,8 @@ class LineWindow:
     """
 
     def __init__(self, lines: np.ndarray, obs_line: np.ndarray, obs_pose: np.ndarray, segs: np.ndarray,
-                 pose_keys: list[int], K_L: np.ndarray, sigma: float, huber_k: float | None, inner_iterations: int = 1):
+                 pose_keys: list[int], K_L: np.ndarray, sigma: float, huber_k: float | None, inner_iterations: int = 1,
+                 T_body_cam: np.ndarray | None = None):
         self.n_lines = len(lines)
         self.line_ids: list[int] = list(range(self.n_lines))  # caller's ids of the rows of ``lines()``
         self.U, self.w = pl.to_orthonormal(np.asarray(lines, dtype=np.float64).reshape(-1, 6))
@@ -68,6 +71,13 @@ class LineWindow:
             self.groups.append((n, starts[js][:, None] + np.arange(n)[None, :]))  # (B, n) observation rows
         self.dim = int(sum(len(rows) * (2 * n - 4) for n, rows in self.groups))
         self._primed = False
+        self.T_bc = None if T_body_cam is None else np.asarray(T_body_cam, dtype=np.float64)
+        self._ad_cb = None if self.T_bc is None else _adjoint(np.linalg.inv(self.T_bc))
+
+    def camera_poses(self, v: gtsam.Values) -> np.ndarray:
+        """(K,4,4) T_world_cam of the window's pose keys in ``v`` (body poses carried through T_body_cam)."""
+        T = np.array([v.atPose3(k).matrix() for k in self.pose_keys]).reshape(-1, 4, 4)
+        return T if self.T_bc is None else T @ self.T_bc
 
     # -- numpy core ------------------------------------------------------------------------------------------
     def _geom(self, Twc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -189,7 +199,7 @@ class LineWindow:
         def error(this: gtsam.CustomFactor, v: gtsam.Values, H: list | None) -> np.ndarray:
             # The lines are re-solved from the state stored at the last *linearisation* (an accepted LM
             # point), never from a trial point, so error() is a function of the poses alone, as LM assumes.
-            Twc = np.array([v.atPose3(k).matrix() for k in self.pose_keys])
+            Twc = self.camera_poses(v)
             if not self._primed:  # first call (LM's initial error): converge the lines at the initial poses
                 self.U, self.w, _ = self.refine_lines(Twc, _PRIME_ITERATIONS)
                 self._primed = True
@@ -205,10 +215,20 @@ class LineWindow:
             if H is not None:
                 self.U, self.w = U, w  # re-anchor
                 for i in range(len(self.pose_keys)):
-                    H[i] = np.ascontiguousarray(J[:, 6 * i : 6 * i + 6])
+                    Ji = J[:, 6 * i : 6 * i + 6]
+                    H[i] = np.ascontiguousarray(Ji if self._ad_cb is None else Ji @ self._ad_cb)
             return r
 
         return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(self.dim), self.pose_keys, error)
+
+
+def _adjoint(T: np.ndarray) -> np.ndarray:
+    """(6,6) adjoint of T = (R, t) for (omega, v) tangents: [[R, 0], [[t]x R, R]] (GTSAM's Pose3 order)."""
+    R, t = T[:3, :3], T[:3, 3]
+    out = np.zeros((6, 6))
+    out[:3, :3], out[3:, 3:] = R, R
+    out[3:, :3] = _skew_stack(t[None])[0] @ R
+    return out
 
 
 def _so3_exp_batch(w: np.ndarray) -> np.ndarray:
