@@ -45,3 +45,21 @@ def test_jobs_and_sweep(tmp_path):
     rows = json.loads(out.with_suffix(".json").read_text())["rows"]
     assert set(rows) == {"a[slam.backend.rgbd_disparity_sigma=0.0]", "a[slam.backend.rgbd_disparity_sigma=0.1]"}
     assert rows["a[slam.backend.rgbd_disparity_sigma=0.1]"]["result"]["ate_rmse"] == serial["rows"]["a"]["result"]["ate_rmse"]
+
+
+def test_ab_row_runs_both_sides_on_every_seed(tmp_path):
+    """Kind "ab": A and B per grid point, B/A per point and the ratio of the means; A equals a plain run."""
+    suite = _suite(tmp_path, "  - name: tiny-ab\n    kind: ab\n    config: configs/tiny.yaml\n"
+                             "    treatment: [slam.features.n_features=400]\n"
+                             "    grid: {dataset.synthetic.seed: [0, 1]}\n    target: some target\n"
+                             "  - {name: plain, config: configs/tiny.yaml, set: [dataset.synthetic.seed=1]}\n")
+    text = run_bench(suite, tmp_path / "B.md", jobs_dir=tmp_path / "runs", workers=2).read_text()
+    rows = json.loads((tmp_path / "B.json").read_text())["rows"]
+    r = rows["tiny-ab"]["result"]
+    assert r["points"] == ["dataset.synthetic.seed=0", "dataset.synthetic.seed=1"] and not r["errors"]
+    assert r["ate_a"][1] == rows["plain"]["result"]["ate_rmse"]  # the A side is the row's config as it is
+    assert r["ratios"] == [b / a for a, b in zip(r["ate_a"], r["ate_b"])]
+    assert abs(r["mean_ratio"] - sum(r["ate_b"]) / sum(r["ate_a"])) < 1e-12
+    assert r["ate_a"] != r["ate_b"]  # the treatment reached the B runs
+    line = next(ln for ln in text.splitlines() if ln.startswith("| tiny-ab"))
+    assert "slam.features.n_features=400" in line and f"**{r['mean_ratio']:.2f}x**" in line and "some target" in line

@@ -180,3 +180,62 @@ def batch_table(rows: list[tuple[Any, dict[str, Any]]]) -> list[str]:
         lines.append(f"| {row.name} | {r['jobs']} | {r['workers']} | {r.get('serial_s', float('nan')):.1f} | {cell(r, 'pool')} | "
                      f"{cell(r, 'ray')} | {same} | {ate} | {row.target} |")
     return lines
+
+
+def ab_jobs(config: str | None, overrides: dict[str, Any], grid: dict[str, list[Any]], treatment: dict[str, Any],
+            out_dir: str) -> list[Job]:
+    """Kind "ab" rows: for every grid point (e.g. seeds) a run without (A) and with (B) ``treatment`` on top.
+    -> [A_0, B_0, A_1, B_1, ...]."""
+    from vslam.config import deep_merge
+
+    jobs = []
+    for i, p in enumerate(grid_overrides(grid)):
+        base = deep_merge(overrides, p)
+        jobs += [Job("run", config, base, f"{out_dir}/a-{i:03d}"), Job("run", config, deep_merge(base, treatment), f"{out_dir}/b-{i:03d}")]
+    return jobs
+
+
+def ab_result(grid: dict[str, list[Any]], results: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per grid point ATE of A and B (and local-mapping ms per keyframe), B/A, and the ratio of the means:
+    one seed's ratio moves by 10-20 % between nearby configurations, a mean over seeds much less."""
+    import statistics
+
+    points = [", ".join(s) for s in grid_sets(grid)]
+    out: dict[str, Any] = {"points": points, "ate_a": [], "ate_b": [], "kf_ms_a": [], "kf_ms_b": []}
+    for a, b in zip(results[0::2], results[1::2]):
+        for key, r in (("a", a), ("b", b)):
+            out[f"ate_{key}"].append(r.get("ate_rmse"))
+            out[f"kf_ms_{key}"].append((r.get("stages") or {}).get("mapping_per_kf"))
+    out["errors"] = [r["error"] for r in results if "error" in r]
+    both = [(a, b) for a, b in zip(out["ate_a"], out["ate_b"]) if a is not None and b is not None]
+    out["ratios"] = [b / a for a, b in both]
+    out["mean_ratio"] = statistics.mean(b for _, b in both) / statistics.mean(a for a, _ in both) if both else None
+    ms = [(a, b) for a, b in zip(out["kf_ms_a"], out["kf_ms_b"]) if a and b]
+    out["kf_ms_ratio"] = statistics.mean(b for _, b in ms) / statistics.mean(a for a, _ in ms) if ms else None
+    return out
+
+
+def ab_table(rows: list[tuple[Any, dict[str, Any]]]) -> list[str]:
+    """BENCHMARKS.md section for kind "ab" rows: (BenchRow, result) pairs."""
+    if not rows:
+        return []
+    lines = ["", "## A/B over seeds", "",
+             "The same configuration without (A) and with (B) one change, on every point of a grid (seeds of a "
+             "synthetic sequence); ATE RMSE m per point, B/A per point, and mean ATE B / mean ATE A. Local-mapping "
+             "ms per keyframe are compared as the ratio of their means (timings share the cores with --jobs).", "",
+             "| row | change (B) | points | ATE A | ATE B | B/A | mean B / mean A | mapping ms/kf B/A | target |",
+             "|---|---|---|---|---|---|---|---|---|"]
+
+    def vals(xs: list[Any], spec: str) -> str:
+        return " / ".join("–" if x is None else format(x, spec) for x in xs)
+
+    for row, r in rows:
+        if "error" in r:
+            lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | {row.target} |")
+            continue
+        mean = "–" if r.get("mean_ratio") is None else f"**{r['mean_ratio']:.2f}x**"
+        kf = "–" if r.get("kf_ms_ratio") is None else f"{r['kf_ms_ratio']:.2f}x"
+        err = f" ({len(r['errors'])} runs failed)" if r.get("errors") else ""
+        lines.append(f"| {row.name} | {', '.join(row.treatment)} | {len(r['points'])}{err} | {vals(r['ate_a'], '.4f')} | "
+                     f"{vals(r['ate_b'], '.4f')} | {vals(r['ratios'], '.2f')} | {mean} | {kf} | {row.target} |")
+    return lines

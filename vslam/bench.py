@@ -44,7 +44,7 @@ PER_FRAME = ("features", "depth", "pose", "total")  # run on every frame: median
 @dataclass(frozen=True)
 class BenchRow:
     name: str
-    kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch", "place", "features", "detector"] = "run"
+    kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch", "place", "features", "detector", "ab"] = "run"
     config: str = ""  # pipeline YAML, relative to the suite file's folder's parent (the repo root) or absolute
     set: tuple[str, ...] = ()  # KEY=VALUE overrides
     note: str = ""
@@ -54,6 +54,8 @@ class BenchRow:
     # run serially, over a process pool and on a local Ray instance of ``workers`` each; wall times compared
     grid: dict[str, Any] = field(default_factory=dict)
     workers: int = 2
+    # kind "ab": every grid point run without (A) and with (B) these KEY=VALUE overrides (``batch.ab_result``)
+    treatment: tuple[str, ...] = ()
     # kind "run" on composited people (issue 5): {data: TUM folder under $VSLAM_DATA, people: 3, seed: 0,
     # coco: coco128}; ``vslam make-dynamic`` writes it once under <runs>/_data and dataset.path points there
     make_dynamic: dict[str, Any] = field(default_factory=dict)
@@ -348,7 +350,7 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
 
     workers > 1 / ray: the jobs of all rows go out together (``vslam.batch.run_jobs``). sweep {KEY: [values]}:
     each selected row once per value, as rows ``NAME[KEY=V]`` of a suite of their own (nothing kept)."""
-    from vslam.batch import Job, batch_row, run_jobs
+    from vslam.batch import Job, ab_jobs, ab_result, batch_row, run_jobs
 
     suite = load_suite(suite_path)
     root = Path(suite_path).resolve().parent.parent
@@ -377,14 +379,18 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
             kept[row.name] = {"result": _json_safe(result), "measured": now, "repeat": 1, "machine": machine}
         elif row.kind == "fusion":  # one seeded, deterministic run: repeating it only costs time
             plan.append((row, [Job("fusion", row.experiment, over, str(jobs_dir / row.name))]))
+        elif row.kind == "ab":  # A and B on every grid point, in the same pool as the other rows
+            plan.append((row, ab_jobs(cfg, over, row.grid, parse_overrides(list(row.treatment)), str(jobs_dir / row.name))))
         else:  # a place / features row is deterministic and reports no timing that repeats would steady
             n = 1 if row.kind in ("place", "features", "detector") else max(1, repeat)
             plan.append((row, [Job(row.kind, cfg, over, str(jobs_dir / f"{row.name}-{i}")) for i in range(n)]))
     results = iter(run_jobs([j for _, jobs in plan for j in jobs], workers, ray))
     parallel = {"parallel": workers if ray is None else f"ray:{workers}"} if workers > 1 or ray is not None else {}
     for row, jobs in plan:
-        kept[row.name] = {"result": _json_safe(_aggregate([next(results) for _ in jobs])), "measured": now,
-                          "repeat": len(jobs), "machine": machine, **parallel}
+        done = [next(results) for _ in jobs]
+        result = ab_result(row.grid, done) if row.kind == "ab" else _aggregate(done)
+        kept[row.name] = {"result": _json_safe(result), "measured": now, "repeat": 1 if row.kind == "ab" else len(jobs),
+                          "machine": machine, **parallel}
     dropped = sorted(set(kept) - names)
     if dropped:
         log.info("%s: rows no longer in the suite dropped: %s", side, ", ".join(dropped))
@@ -443,7 +449,7 @@ def _measured_lines(entries: list[tuple[BenchRow, dict[str, Any]]], machine: str
 
 def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, Any]]], now: str, machine: str) -> str:
     """The whole BENCHMARKS.md from sidecar entries ({"result", "measured", "repeat", "machine"})."""
-    from vslam.batch import batch_table
+    from vslam.batch import ab_table, batch_table
 
     lines = [
         f"# {suite.title}",
@@ -460,7 +466,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     ]
     for row, e in entries:
         r, repeat = e["result"], int(e["repeat"])
-        if row.kind in ("fusion", "imu_preint", "batch", "place", "features", "detector"):  # own tables below
+        if row.kind in ("fusion", "imu_preint", "batch", "place", "features", "detector", "ab"):  # own tables below
             continue
         if "error" in r:
             lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | | | | {row.target} |")
@@ -492,6 +498,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     lines += _features_table([(row, e["result"]) for row, e in entries if row.kind == "features"])
     lines += _detector_table([(row, e["result"]) for row, e in entries if row.kind == "detector"])
     lines += batch_table([(row, e["result"]) for row, e in entries if row.kind == "batch"])
+    lines += ab_table([(row, e["result"]) for row, e in entries if row.kind == "ab"])
     notes = [f"- **{row.name}**: {row.note}" for row, _ in entries if row.note]
     if notes:
         lines += ["", "## Notes", "", *notes]

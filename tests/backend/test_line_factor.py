@@ -98,6 +98,17 @@ def test_error_is_end_point_distance_and_huber_cost():
     assert err == pytest.approx(k * 2.5 - 0.5 * k * k, rel=1e-9)  # Huber rho of the norm 2.5
 
 
+def _numeric_pose_gradient(f, v: gtsam.Values, n_poses: int, h: float = 1e-6) -> np.ndarray:
+    """Central differences of f.error over every pose X(0..n-1), 6 tangent directions each -> (6n,)."""
+    num = []
+    for k in range(n_poses):
+        for i in range(6):
+            d = np.zeros(6)
+            d[i] = h
+            num.append((f.error(_retracted(v, X(k), 6, d)) - f.error(_retracted(v, X(k), 6, -d))) / (2 * h))
+    return np.array(num)
+
+
 def _line_scene(rng, n_kf=6, n_lines=40, n_pts=12):
     poses = S.camera_path(rng, n_kf)
     lines, segs_kf, segs_ln, segs = {}, [], [], []
@@ -190,13 +201,7 @@ def test_window_factor_gradient_and_error_match_the_line_cost():
     e = win.whitened_sq_errors(np.array([v.atPose3(X(k)).matrix() for k in range(len(poses))]))
     a = np.sqrt(e)
     assert f.error(v) == pytest.approx(np.sum(np.where(a <= 1.345, 0.5 * e, 1.345 * a - 0.5 * 1.345**2)), rel=1e-6)
-    h, num = 1e-6, []
-    for k in range(len(poses)):
-        for i in range(6):
-            d = np.zeros(6)
-            d[i] = h
-            num.append((f.error(_retracted(v, X(k), 6, d)) - f.error(_retracted(v, X(k), 6, -d))) / (2 * h))
-    num = np.array(num)
+    num = _numeric_pose_gradient(f, v, len(poses))
     assert np.abs(grad).max() > 1.0
     assert np.abs(grad - num).max() <= 1e-3 * np.abs(grad).max(), np.abs(grad - num).max()
 
@@ -224,12 +229,6 @@ def test_window_factor_on_body_poses_is_the_camera_factor_carried_through_T_body
         f_body.linearize(vb)
     A, b = f_body.linearize(vb).jacobian()
     grad = A.T @ (-b)
-    h, num = 1e-6, []
-    for k in range(len(poses)):
-        for i in range(6):
-            d = np.zeros(6)
-            d[i] = h
-            num.append((f_body.error(_retracted(vb, X(k), 6, d)) - f_body.error(_retracted(vb, X(k), 6, -d))) / (2 * h))
-    num = np.array(num)
+    num = _numeric_pose_gradient(f_body, vb, len(poses))
     assert np.abs(grad).max() > 1.0
     assert np.abs(grad - num).max() <= 1e-3 * np.abs(grad).max(), np.abs(grad - num).max()
