@@ -219,10 +219,11 @@ def ab_table(rows: list[tuple[Any, dict[str, Any]]]) -> list[str]:
     """BENCHMARKS.md section for kind "ab" rows: (BenchRow, result) pairs."""
     if not rows:
         return []
-    lines = ["", "## A/B over seeds", "",
+    lines = ["", "## A/B over a grid (seeds, feature budgets)", "",
              "The same configuration without (A) and with (B) one change, on every point of a grid (seeds of a "
-             "synthetic sequence); ATE RMSE m per point, B/A per point, and mean ATE B / mean ATE A. Local-mapping "
-             "ms per keyframe are compared as the ratio of their means (timings share the cores with --jobs).", "",
+             "synthetic sequence; a real sequence has none, so there another knob such as the ORB budget); ATE RMSE m "
+             "per point, B/A per point, and mean ATE B / mean ATE A. Local-mapping ms per keyframe are compared as the "
+             "ratio of their means (timings share the cores with --jobs).", "",
              "| row | change (B) | points | ATE A | ATE B | B/A | mean B / mean A | mapping ms/kf B/A | target |",
              "|---|---|---|---|---|---|---|---|---|"]
 
