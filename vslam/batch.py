@@ -15,6 +15,7 @@ import itertools
 import logging
 import multiprocessing as mp
 import os
+import statistics
 import sys
 from dataclasses import dataclass, field
 from typing import Any
@@ -127,7 +128,6 @@ def batch_row(config: str | None, overrides: dict[str, Any], grid: dict[str, lis
               out_dir: str) -> dict[str, Any]:
     """Issue 10's batch check: the grid's jobs serially, over a process pool and on a local Ray instance
     (``workers`` each): wall seconds and whether every job's metrics equal the serial run's."""
-    import statistics
     import time
 
     from vslam.config import deep_merge
@@ -157,14 +157,16 @@ def batch_row(config: str | None, overrides: dict[str, Any], grid: dict[str, lis
 
 def batch_table(rows: list[tuple[Any, dict[str, Any]]]) -> list[str]:
     """BENCHMARKS.md section for kind "batch" rows: (BenchRow, result) pairs."""
+    from vslam.bench import md_failed_row, md_section
+
     if not rows:
         return []
-    lines = ["", "## Batch evaluation: serial vs process pool vs Ray (issue 10)", "",
-             "The same jobs (a grid of sequences x seeds) run one after another, over a local process pool and on a "
-             "local Ray instance; 'same metrics' compares every job's frames, tracked frames, ATE, RPE and path length "
-             "with the serial run's.", "",
-             "| row | jobs | workers | serial s | pool s (speed-up) | Ray s (speed-up) | same metrics pool / Ray | median ATE m | target |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = md_section("Batch evaluation: serial vs process pool vs Ray (issue 10)",
+                       "The same jobs (a grid of sequences x seeds) run one after another, over a local process pool and "
+                       "on a local Ray instance; 'same metrics' compares every job's frames, tracked frames, ATE, RPE and "
+                       "path length with the serial run's.",
+                       ["row", "jobs", "workers", "serial s", "pool s (speed-up)", "Ray s (speed-up)",
+                        "same metrics pool / Ray", "median ATE m", "target"])
 
     def cell(r: dict[str, Any], mode: str) -> str:
         if f"{mode}_s" not in r:
@@ -173,7 +175,7 @@ def batch_table(rows: list[tuple[Any, dict[str, Any]]]) -> list[str]:
 
     for row, r in rows:
         if "error" in r:
-            lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | {row.target} |")
+            lines.append(md_failed_row(row, r["error"], 9))
             continue
         same = " / ".join("yes" if r.get(f"{m}_identical") else ("**no**" if f"{m}_identical" in r else "–") for m in ("pool", "ray"))
         ate = "–" if r.get("ate_median") is None else f"{r['ate_median']:.4f}"
@@ -198,8 +200,6 @@ def ab_jobs(config: str | None, overrides: dict[str, Any], grid: dict[str, list[
 def ab_result(grid: dict[str, list[Any]], results: list[dict[str, Any]]) -> dict[str, Any]:
     """Per grid point ATE of A and B (and local-mapping ms per keyframe), B/A, and the ratio of the means:
     one seed's ratio moves by 10-20 % between nearby configurations, a mean over seeds much less."""
-    import statistics
-
     points = [", ".join(s) for s in grid_sets(grid)]
     out: dict[str, Any] = {"points": points, "ate_a": [], "ate_b": [], "kf_ms_a": [], "kf_ms_b": []}
     for a, b in zip(results[0::2], results[1::2]):
@@ -209,30 +209,35 @@ def ab_result(grid: dict[str, list[Any]], results: list[dict[str, Any]]) -> dict
     out["errors"] = [r["error"] for r in results if "error" in r]
     both = [(a, b) for a, b in zip(out["ate_a"], out["ate_b"]) if a is not None and b is not None]
     out["ratios"] = [b / a for a, b in both]
-    out["mean_ratio"] = statistics.mean(b for _, b in both) / statistics.mean(a for a, _ in both) if both else None
-    ms = [(a, b) for a, b in zip(out["kf_ms_a"], out["kf_ms_b"]) if a and b]
-    out["kf_ms_ratio"] = statistics.mean(b for _, b in ms) / statistics.mean(a for a, _ in ms) if ms else None
+    out["mean_ratio"] = _ratio_of_means(both)
+    out["kf_ms_ratio"] = _ratio_of_means([(a, b) for a, b in zip(out["kf_ms_a"], out["kf_ms_b"]) if a and b])
     return out
+
+
+def _ratio_of_means(pairs: list[tuple[float, float]]) -> float | None:
+    """mean(b) / mean(a) over (a, b) pairs; None without pairs."""
+    return statistics.mean(b for _, b in pairs) / statistics.mean(a for a, _ in pairs) if pairs else None
 
 
 def ab_table(rows: list[tuple[Any, dict[str, Any]]]) -> list[str]:
     """BENCHMARKS.md section for kind "ab" rows: (BenchRow, result) pairs."""
+    from vslam.bench import md_failed_row, md_section
+
     if not rows:
         return []
-    lines = ["", "## A/B over a grid (seeds, feature budgets)", "",
-             "The same configuration without (A) and with (B) one change, on every point of a grid (seeds of a "
-             "synthetic sequence; a real sequence has none, so there another knob such as the ORB budget); ATE RMSE m "
-             "per point, B/A per point, and mean ATE B / mean ATE A. Local-mapping ms per keyframe are compared as the "
-             "ratio of their means (timings share the cores with --jobs).", "",
-             "| row | change (B) | points | ATE A | ATE B | B/A | mean B / mean A | mapping ms/kf B/A | target |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = md_section("A/B over a grid (seeds, feature budgets)",
+                       "The same configuration without (A) and with (B) one change, on every point of a grid (seeds of a "
+                       "synthetic sequence; a real sequence has none, so there another knob such as the ORB budget); ATE "
+                       "RMSE m per point, B/A per point, and mean ATE B / mean ATE A. Local-mapping ms per keyframe are "
+                       "compared as the ratio of their means (timings share the cores with --jobs).",
+                       ["row", "change (B)", "points", "ATE A", "ATE B", "B/A", "mean B / mean A", "mapping ms/kf B/A", "target"])
 
     def vals(xs: list[Any], spec: str) -> str:
         return " / ".join("–" if x is None else format(x, spec) for x in xs)
 
     for row, r in rows:
         if "error" in r:
-            lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | {row.target} |")
+            lines.append(md_failed_row(row, r["error"], 9))
             continue
         mean = "–" if r.get("mean_ratio") is None else f"**{r['mean_ratio']:.2f}x**"
         kf = "–" if r.get("kf_ms_ratio") is None else f"{r['kf_ms_ratio']:.2f}x"

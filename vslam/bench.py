@@ -469,7 +469,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
         if row.kind in ("fusion", "imu_preint", "batch", "place", "features", "detector", "ab"):  # own tables below
             continue
         if "error" in r:
-            lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | | | | {row.target} |")
+            lines.append(md_failed_row(row, r["error"], 12))
             continue
         ate = _fmt(r.get("ate_rmse"), ".4f")
         if r.get("ate_rmse_spread") and repeat > 1:
@@ -509,18 +509,28 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     return "\n".join(lines)
 
 
+def md_section(title: str, intro: str, columns: list[str]) -> list[str]:
+    """Lines opening a BENCHMARKS.md section: ``## title``, an intro paragraph, a table head of ``columns``."""
+    return ["", f"## {title}", "", intro, "", "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+
+
+def md_failed_row(row: BenchRow, error: str, n_columns: int) -> str:
+    """A table line for a row whose job failed: name, the error, empty cells, the target in the last column."""
+    return f"| {row.name} | **failed**: {error} |" + " |" * (n_columns - 3) + f" {row.target} |"
+
+
 def _imu_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     """Issue 8 real-IMU numbers: one line per window length, then the static-window line per row."""
     if not rows:
         return []
-    lines = ["", "## IMU preintegration on real data (issue 8)", "",
-             "Windows start at ground-truth states (pose, velocity, biases); error of the predicted end pose; NEES of "
-             "rotation + position against the pim's covariance (6 dof: consistent ≈ 6).", "",
-             "| row | window s | windows | position RMSE m | rotation RMSE ° | predicted σ_p m | NEES mean (median) "
-             "| NEES rot / pos | noise × for NEES 6 | target |", "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = md_section("IMU preintegration on real data (issue 8)",
+                       "Windows start at ground-truth states (pose, velocity, biases); error of the predicted end pose; "
+                       "NEES of rotation + position against the pim's covariance (6 dof: consistent ≈ 6).",
+                       ["row", "window s", "windows", "position RMSE m", "rotation RMSE °", "predicted σ_p m",
+                        "NEES mean (median)", "NEES rot / pos", "noise × for NEES 6", "target"])
     for row, r in rows:
         if "error" in r:
-            lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | | {row.target} |")
+            lines.append(md_failed_row(row, r["error"], 10))
             continue
         for w in r["windows"]:
             lines.append(f"| {row.name} | {w['length_s']:g} | {w['windows']} | {w['pos_rmse_m']:.4f} | {w['rot_rmse_deg']:.3f} "
@@ -570,14 +580,15 @@ def _place_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     """Issue 7 retrieval: recall@k per evaluation set and descriptor, then the database cost at 10k keyframes."""
     if not rows:
         return []
-    lines = ["", "## Place recognition (issue 7)", "",
-             "A query counts when the database holds a frame of the same place; recalled at k when one of its k most "
-             "similar database frames is one. BoW: tf-idf of 512 ORB words on the tracker's keypoints (full image); "
-             "VLADNet: models/vladnet_v1.pt on the image (its model card says what it was trained on: not these sets).", "",
-             "| row | set | descriptor | queries | R@1 | R@5 | R@10 | ms / image | target |", "|---|---|---|---|---|---|---|---|---|"]
+    lines = md_section("Place recognition (issue 7)",
+                       "A query counts when the database holds a frame of the same place; recalled at k when one of its k "
+                       "most similar database frames is one. BoW: tf-idf of 512 ORB words on the tracker's keypoints (full "
+                       "image); VLADNet: models/vladnet_v1.pt on the image (its model card says what it was trained on: not "
+                       "these sets).",
+                       ["row", "set", "descriptor", "queries", "R@1", "R@5", "R@10", "ms / image", "target"])
     for row, r in rows:
         if "error" in r:
-            lines.append(f"| {row.name} | **failed**: {r['error']} | | | | | | | {row.target} |")
+            lines.append(md_failed_row(row, r["error"], 9))
             continue
         for set_name, res in r["sets"].items():
             for d, m in res.items():
