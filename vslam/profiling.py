@@ -19,7 +19,7 @@ from typing import Any
 
 #: pipeline order; sub-stages of mapping are indented in the table
 ORDER = ("decode", "features", "dynamic", "lines", "depth", "pose", "mapping", "map_create", "map_fuse_cull", "map_ba",
-         "map_loop", "total")
+         "map_wait", "map_loop", "total")
 
 
 def profile(stats_csv: str | Path) -> dict[str, Any]:

@@ -4,7 +4,9 @@ import numpy as np
 
 from vslam.data.synthetic import SyntheticConfig, SyntheticSequence
 from vslam.features import EXTRACTORS, FeatureConfig, make_extractor
-from vslam.features.matching import hamming_rows, match_by_projection, match_epipolar, match_mutual
+from scipy.spatial import cKDTree
+
+from vslam.features.matching import best_pairs, descriptor_rows, hamming_rows, match_by_projection, match_epipolar, match_mutual
 from vslam.geometry.se3 import inv_T, make_T, skew, so3_exp
 from vslam.features.orb import bucket
 
@@ -48,6 +50,30 @@ def test_projection_matching_radius_threshold_and_uniqueness():
     d_far[:2] ^= 0xFF  # 16 bits off
     pairs = match_by_projection(kp_uv[[0, 0]], np.stack([d_far, kp_desc[0]]), kp_uv, kp_desc, radius=2.0, max_dist=64)
     assert pairs.tolist() == [[1, 0]]
+
+
+def test_binary_projection_matching_equals_the_generic_candidate_ranking():
+    """The popcount / partition fast path for ORB descriptors returns exactly what ``best_pairs`` returns on the
+    same candidates, ties included (few distinct descriptors make many equal distances)."""
+    rng = np.random.default_rng(3)
+    for trial in range(20):
+        n, p = int(rng.integers(2, 400)), int(rng.integers(1, 400))
+        kp_uv = rng.uniform(0, 100, (n, 2))
+        palette = rng.integers(0, 256, (int(rng.integers(2, 12)), 32), dtype=np.uint8)
+        kp_desc = palette[rng.integers(0, len(palette), n)]
+        pt_desc = palette[rng.integers(0, len(palette), p)].copy()
+        pt_desc[:, 0] ^= rng.integers(0, 4, p).astype(np.uint8)  # small perturbations: near-ties
+        pred = rng.uniform(0, 100, (p, 2))
+        radius = rng.uniform(3, 15, p) if trial % 2 else 8.0
+        ratio = None if trial % 5 == 0 else 0.9
+        got = match_by_projection(pred, pt_desc, kp_uv, kp_desc, radius, 64 if trial % 3 else 300, ratio)
+        k = min(16, n)
+        d, ki = cKDTree(kp_uv).query(pred, k=k, distance_upper_bound=float(np.max(radius)))
+        d, ki = d.reshape(p, k), ki.reshape(p, k)
+        valid = np.isfinite(d) & (d <= np.broadcast_to(radius, (p,))[:, None])
+        qi, ti = np.nonzero(valid)[0], ki[valid].astype(np.int64)
+        want = best_pairs(qi, ti, descriptor_rows(pt_desc[qi], kp_desc[ti]).astype(float), 64 if trial % 3 else 300, ratio)
+        np.testing.assert_array_equal(got, want)
 
 
 def test_bucketing_spreads_keypoints():

@@ -85,9 +85,39 @@ def match_by_projection(
     valid = np.isfinite(d) & (d <= r[:, None])
     if not valid.any():
         return empty
+    if pt_desc.dtype == np.uint8 and kp_desc.dtype == np.uint8 and pt_desc.shape[1] % 8 == 0:
+        return _best_pairs_binary(valid, ki, pt_desc, kp_desc, max_dist, ratio)
     pi = np.nonzero(valid)[0]
     ki = ki[valid].astype(np.int64)
     return best_pairs(pi, ki, descriptor_rows(pt_desc[pi], kp_desc[ki]).astype(np.float64), max_dist, ratio)
+
+
+def _best_pairs_binary(valid: np.ndarray, ki: np.ndarray, pt_desc: np.ndarray, kp_desc: np.ndarray, max_dist: float,
+                       ratio: float | None) -> np.ndarray:
+    """``best_pairs`` on the (P,k) candidate grid of binary descriptors, same result, ~3x faster: Hamming
+    distances by 64-bit popcount, and each row's best / second best from one partition of the key
+    distance * (N+1) + target (integer distances, so ties still break by target index)."""
+    n = len(kp_desc)
+    kic = np.where(valid, ki, 0)
+    a = np.ascontiguousarray(pt_desc).view(np.uint64)
+    b = np.ascontiguousarray(kp_desc).view(np.uint64)
+    dist = np.bitwise_count(a[:, None, :] ^ b[kic]).sum(axis=2, dtype=np.int64)
+    big = np.iinfo(np.int64).max
+    key = np.where(valid, dist * (n + 1) + kic, big)
+    two = np.partition(key, 1, axis=1)[:, :2] if key.shape[1] > 1 else np.concatenate([key, np.full_like(key, big)], axis=1)
+    has = two[:, 0] != big
+    best_q = np.flatnonzero(has)
+    best_d, best_t = np.divmod(two[has, 0], n + 1)
+    ok = best_d <= max_dist
+    if ratio is not None:
+        sec = np.where(two[has, 1] != big, two[has, 1] // (n + 1), np.inf)
+        ok &= best_d < ratio * sec
+    best_q, best_t, best_d = best_q[ok], best_t[ok], best_d[ok]
+    order = np.lexsort((best_q, best_d, best_t))
+    best_q, best_t = best_q[order], best_t[order]
+    keep = np.r_[True, best_t[1:] != best_t[:-1]] if len(best_t) else np.zeros(0, bool)
+    out = np.stack([best_q[keep], best_t[keep]], axis=1).astype(np.int64).reshape(-1, 2)
+    return out[np.argsort(out[:, 0], kind="stable")]
 
 
 def best_pairs(qi: np.ndarray, ti: np.ndarray, dist: np.ndarray, max_dist: float, ratio: float | None) -> np.ndarray:

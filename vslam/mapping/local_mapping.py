@@ -1,4 +1,5 @@
-"""Local mapping, run synchronously right after each new keyframe (ORB-SLAM's LocalMapping).
+"""Local mapping, run right after each new keyframe (ORB-SLAM's LocalMapping); its local BA either at once or
+in a worker process while tracking goes on (``MappingConfig.ba_lag_frames``).
 
 Steps: attach the tracked observations, create new points (RGB-D/stereo:
 back-project keypoints with depth; monocular: triangulate unmatched keypoint
@@ -17,6 +18,7 @@ from typing import Literal
 import numpy as np
 
 from vslam.backend.ba import BackendConfig, BAProblem, StereoCamera, local_bundle_adjustment
+from vslam.backend.worker import BAWorker
 from vslam.data.types import PinholeCamera, SensorKind
 from vslam.features.matching import match_by_projection, match_epipolar, match_mutual
 from vslam.geometry.se3 import inv_T
@@ -68,6 +70,11 @@ class MappingConfig:
     # synthetic room / loop room (ATE m): 0 -> 0.019 / 0.297, 30 -> 0.019 / 0.064, 60 -> 0.026 / 0.064,
     # 100 -> 0.026 / 0.045; 30 fixes the floating window without costing the plain room.
     ba_min_anchor_points: int = 30
+    # Local BA in a second process (``vslam.backend.worker``) while tracking goes on, ORB-SLAM's LocalMapping
+    # thread on a fixed schedule: the result is written back ``ba_lag_frames`` frames after its keyframe, or
+    # before the next keyframe is mapped if that comes first, so the same input still gives the same
+    # trajectory. The frames in between track against the map as it was. 0 = solve at once, in this process.
+    ba_lag_frames: int = 0
 
 
 class LocalMapper:
@@ -81,6 +88,8 @@ class LocalMapper:
         self.inertial = None
         # line landmarks (``vslam.mapping.line_map.LineSlam``, issue 6) join local BA when set
         self.lines = None
+        self.worker: BAWorker | None = None  # ba_lag_frames > 0: the process that solves local BA
+        self.pending = None  # (problem, obs keyframes, obs points, fixed) of the worker's BA not yet written back
 
     def process(self, kf: KeyFrame, tracked_ids: np.ndarray) -> dict[str, float]:
         """Insert keyframe ``kf`` whose keypoints matched ``tracked_ids`` (N,) (-1 none). -> ms per step."""
@@ -106,7 +115,10 @@ class LocalMapper:
         ms["fuse_cull"] = (time.perf_counter() - t) * 1e3
         t = time.perf_counter()
         if self.cfg.ba and len(self.map.keyframes) >= 2:
-            self.bundle_adjust(kf.id)
+            if self.cfg.ba_lag_frames > 0:
+                self.submit_bundle_adjust(kf.id)
+            else:
+                self.bundle_adjust(kf.id)
         ms["ba"] = (time.perf_counter() - t) * 1e3
         return ms
 
@@ -229,6 +241,54 @@ class LocalMapper:
             fixed_set.add(older[0])
 
     def bundle_adjust(self, kf_id: int) -> None:
+        """Local BA around ``kf_id``, solved here and written back now."""
+        job = self._ba_job(kf_id)
+        if job is None:
+            return
+        problem, okf, opt, fixed, chain = job
+        if len(chain) >= 2:
+            res = self.inertial.solve(problem, self.stereo_cam, self.backend)
+        else:
+            res = local_bundle_adjustment(problem, self.stereo_cam, self.backend)
+        self._apply_ba(problem, res, okf, opt, fixed)
+
+    def submit_bundle_adjust(self, kf_id: int) -> bool:
+        """Local BA around ``kf_id`` in the worker process (``MappingConfig.ba_lag_frames``); ``flush`` writes it
+        back. Visual-inertial windows are solved at once. -> True when a solve is pending."""
+        job = self._ba_job(kf_id)
+        if job is None:
+            return False
+        problem, okf, opt, fixed, chain = job
+        if len(chain) >= 2:
+            self._apply_ba(problem, self.inertial.solve(problem, self.stereo_cam, self.backend), okf, opt, fixed)
+            return False
+        if self.worker is None:
+            self.worker = BAWorker()
+        self.worker.submit(problem, self.stereo_cam, self.backend)
+        self.pending = (problem, okf, opt, fixed)
+        return True
+
+    def flush(self) -> float:
+        """Wait for the pending worker BA (if any) and write it back. -> ms spent waiting for the worker."""
+        if self.pending is None:
+            return 0.0
+        problem, okf, opt, fixed = self.pending
+        self.pending = None
+        t = time.perf_counter()
+        res = self.worker.result()  # type: ignore[union-attr]
+        ms = (time.perf_counter() - t) * 1e3
+        self._apply_ba(problem, res, okf, opt, fixed)
+        return ms
+
+    def close(self) -> None:
+        """Stop the worker process (a pending result is dropped: call ``flush`` first to keep it)."""
+        self.pending = None
+        if self.worker is not None:
+            self.worker.close()
+            self.worker = None
+
+    def _ba_job(self, kf_id: int):
+        """-> (BAProblem, observation keyframe ids, point ids, fixed keyframes, IMU chain) or None (nothing to do)."""
         m = self.map
         window = [kf_id] + m.covisible_keyframes(kf_id, self.cfg.min_shared, self.cfg.ba_window - 1)
         chain = self.inertial.chain() if self.inertial is not None else []
@@ -236,7 +296,7 @@ class LocalMapper:
         pts = np.unique(np.concatenate([m.keyframes[k].point_ids for k in window]))
         pts = pts[pts >= 0]
         if len(pts) == 0:
-            return
+            return None
         fixed_counts: dict[int, int] = {}
         for pid in pts:
             for k in m.points[int(pid)].observations:
@@ -251,7 +311,7 @@ class LocalMapper:
             fixed = [window.pop()]
         self._anchor_window(kf_id, window, fixed, pts)
         if not window:
-            return
+            return None
         allk = set(window) | set(fixed)
         okf, opt, ouv, our, osg = [], [], [], [], []
         for pid in pts:
@@ -269,10 +329,9 @@ class LocalMapper:
                             obs_sigma=self.backend.pixel_sigma * np.array(osg, dtype=np.float64) if self.cfg.level_sigma else None)
         if self.lines is not None:
             problem.lines = self.lines.ba_problem(sorted(allk))
-        if len(chain) >= 2:
-            res = self.inertial.solve(problem, self.stereo_cam, self.backend)
-        else:
-            res = local_bundle_adjustment(problem, self.stereo_cam, self.backend)
+        return problem, okf, opt, fixed, chain
+
+    def _apply_ba(self, problem: BAProblem, res, okf: list[int], opt: list[int], fixed: list[int]) -> None:
         if self.lines is not None:
             self.lines.apply_ba(problem.lines, getattr(res, "lines", {}), getattr(res, "line_inliers", None), res.poses)
-        m.apply_adjustment(res.poses, res.points, res.inliers, okf, opt, set(fixed), getattr(res, "depth_only", None))
+        self.map.apply_adjustment(res.poses, res.points, res.inliers, okf, opt, set(fixed), getattr(res, "depth_only", None))

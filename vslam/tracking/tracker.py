@@ -69,6 +69,15 @@ class TrackingConfig:
     seed: int = 0
 
 
+@dataclass(frozen=True)
+class LocalPoints:
+    """Map points near the reference keyframe: ids (P,), world positions (P,3), descriptors (P,D)."""
+
+    ids: np.ndarray
+    xyz: np.ndarray
+    desc: np.ndarray
+
+
 @dataclass
 class TrackResult:
     """Outcome for one frame: T_world_cam (4,4); point_ids (N,) map point per keypoint (inliers only, -1 else)."""
@@ -141,22 +150,32 @@ class Tracker:
         M = res["cam_from_world"].matrix()
         return inv_T(make_T(M[:, :3], M[:, 3])), np.asarray(res["inlier_mask"], bool)
 
-    def refine(self, T: np.ndarray, pids: np.ndarray, kps: np.ndarray, ur: np.ndarray, feats: Features) -> tuple[np.ndarray, np.ndarray]:
-        """Pose-only refinement on matched (point id, keypoint) pairs -> (T_world_cam, inliers (M,))."""
-        X = self.map.points_xyz(pids)
+    def refine(self, T: np.ndarray, pids: np.ndarray, kps: np.ndarray, ur: np.ndarray, feats: Features,
+               X: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Pose-only refinement on matched (point id, keypoint) pairs (X: their positions, if already gathered)
+        -> (T_world_cam, inliers (M,))."""
+        X = self.map.points_xyz(pids) if X is None else X
         # Unlike BA, pose-only refinement uses one sigma for all levels: per-level sigmas measured worse
         # here (synthetic room RGB-D: ATE 0.063 vs 0.017 m), the chi2 gate then lets coarse outliers in.
         return optimize_pose(T, X, feats.uv[kps], ur[kps], self.stereo_cam, self.backend)
 
-    def search_local(self, T: np.ndarray, pids: np.ndarray, feats: Features, tree: cKDTree, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Projection matching of map points ``pids`` -> (matched point ids, keypoint indices, visible mask over pids)."""
-        uv, _, vis = project(T, self.map.points_xyz(pids), self.cam, self.cfg.min_depth)
+    def search_local(self, T: np.ndarray, local: LocalPoints, feats: Features, tree: cKDTree,
+                     radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Projection matching of the local map -> (indices into ``local`` of the matched points, keypoint
+        indices, visible mask over ``local``)."""
+        uv, _, vis = project(T, local.xyz, self.cam, self.cfg.min_depth)
         idx = np.flatnonzero(vis)
         if len(idx) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), vis
-        desc = self.map.descriptors(pids[idx])
-        pairs = match_by_projection(uv[idx], desc, feats.uv, feats.desc, radius, self.cfg.max_hamming, self.cfg.ratio, tree)
-        return pids[idx[pairs[:, 0]]], pairs[:, 1], vis
+        pairs = match_by_projection(uv[idx], local.desc[idx], feats.uv, feats.desc, radius, self.cfg.max_hamming,
+                                    self.cfg.ratio, tree)
+        return idx[pairs[:, 0]], pairs[:, 1], vis
+
+    def local_points(self, ref_kf: int) -> LocalPoints:
+        """The local map of ``ref_kf`` (it and its most covisible keyframes) with positions and descriptors,
+        gathered once per frame for both matching rounds."""
+        _, pids = self.map.local_map(ref_kf, self.cfg.local_keyframes)
+        return LocalPoints(pids, self.map.points_xyz(pids), self.map.descriptors(pids))
 
     def _result(self, T: np.ndarray, pids: np.ndarray, kps: np.ndarray, inl: np.ndarray, n: int, method: str, n_matches: int) -> TrackResult:
         point_ids = np.full(n, -1, np.int64)
@@ -165,34 +184,35 @@ class Tracker:
         return TrackResult(T, ok, point_ids, n_matches, int(inl.sum()), method)
 
     def _finish_local(self, T: np.ndarray, feats: Features, ur: np.ndarray, ref_kf: int, tree: cKDTree, method: str,
-                      pids: np.ndarray | None = None) -> TrackResult:
-        """Second round: the whole local map (``pids``, else that of ``ref_kf``) from a good pose, tight radius,
+                      local: LocalPoints | None = None) -> TrackResult:
+        """Second round: the whole local map (``local``, else that of ``ref_kf``) from a good pose, tight radius,
         pose-only refinement."""
-        if pids is None:
-            _, pids = self.map.local_map(ref_kf, self.cfg.local_keyframes)
-        mp, mk, vis = self.search_local(T, pids, feats, tree, self.cfg.radius_refine_px)
+        if local is None:
+            local = self.local_points(ref_kf)
+        sel, mk, vis = self.search_local(T, local, feats, tree, self.cfg.radius_refine_px)
+        mp, X = local.ids[sel], local.xyz[sel]
         if len(mp) < self.cfg.min_inliers:
             return TrackResult(T, False, np.full(len(feats), -1, np.int64), len(mp), 0, method)
-        T2, inl = self.refine(T, mp, mk, ur, feats)
-        for pid in pids[vis]:
+        T2, inl = self.refine(T, mp, mk, ur, feats, X)
+        for pid in local.ids[vis]:
             self.map.points[int(pid)].n_visible += 1
         for pid in mp[inl]:
             self.map.points[int(pid)].n_found += 1
         res = self._result(T2, mp, mk, inl, len(feats), method, len(mp))
         if res.ok:  # issue 3: every measured pose says how uncertain it is (~0.1 ms)
-            res.cov = pose_covariance(T2, self.map.points_xyz(mp[inl]), feats.uv[mk[inl]], ur[mk[inl]], self.stereo_cam, self.backend)
+            res.cov = pose_covariance(T2, X[inl], feats.uv[mk[inl]], ur[mk[inl]], self.stereo_cam, self.backend)
         return res
 
     # -- strategies -----------------------------------------------------------
     def track_projection(self, feats: Features, ur: np.ndarray, T_pred: np.ndarray, ref_kf: int, radius: float, tree: cKDTree) -> TrackResult | None:
-        _, pids = self.map.local_map(ref_kf, self.cfg.local_keyframes)
-        mp, mk, _ = self.search_local(T_pred, pids, feats, tree, radius)
-        if len(mp) < self.cfg.min_matches:
+        local = self.local_points(ref_kf)
+        sel, mk, _ = self.search_local(T_pred, local, feats, tree, radius)
+        if len(sel) < self.cfg.min_matches:
             return None
-        T, inl = self.pnp(feats.uv[mk], self.map.points_xyz(mp))
+        T, inl = self.pnp(feats.uv[mk], local.xyz[sel])
         if T is None:  # the LO-RANSAC pose is already refined on its inliers; the back end refines in round two
             return None
-        return self._finish_local(T, feats, ur, ref_kf, tree, "projection", pids)  # the map has not changed since
+        return self._finish_local(T, feats, ur, ref_kf, tree, "projection", local)  # the map has not changed since
 
     def track_keyframe(self, feats: Features, ur: np.ndarray, kf_id: int, tree: cKDTree, method: str = "reference") -> TrackResult | None:
         """Descriptor matching against one keyframe's map points, PnP, then the local-map round."""
