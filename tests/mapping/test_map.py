@@ -144,3 +144,26 @@ def test_keyframe_when_few_inliers_rgbd():
     assert need_keyframe(60, 40, 5, 0, 0, "rgbd", cfg)
     assert not need_keyframe(60, 40, 5, 0, 0, "mono", cfg)
     assert not need_keyframe(cfg.kf_min_inliers + 50, 40, 5, 0, 0, "rgbd", cfg)
+
+
+def test_batched_descriptor_update_equals_one_point_at_a_time():
+    rng = np.random.default_rng(4)
+    m = _map_with(n_kf=8, n_kp=60)
+    for kf in m.keyframes.values():  # few distinct descriptors: many equal medians (ties break by first)
+        kf.features.desc[:] = rng.integers(0, 256, (4, 32), dtype=np.uint8)[rng.integers(0, 4, 60)]
+    ids = []
+    for j in range(50):
+        kfs = rng.choice(8, size=int(rng.integers(1, 8)), replace=False)
+        p = m.add_point(np.zeros(3), int(kfs[0]), j)
+        for k in kfs[1:]:
+            m.add_observation(p.id, int(k), j)
+        ids.append(p.id)
+    one = Map()
+    one.keyframes, one.points = m.keyframes, {i: type(m.points[i])(**vars(m.points[i])) for i in ids}
+    for i in ids:
+        one.points[i].observations = dict(m.points[i].observations)
+        one.update_descriptor(i)
+    m.update_descriptors(np.array(ids))
+    assert sum(len(m.points[i].observations) >= 3 for i in ids) > 20
+    for i in ids:
+        np.testing.assert_array_equal(m.points[i].descriptor, one.points[i].descriptor)

@@ -109,8 +109,7 @@ class LocalMapper:
         ms["create"] = (time.perf_counter() - t) * 1e3
         t = time.perf_counter()
         self.fuse(kf, neighbors[: self.cfg.fuse_neighbors])
-        for pid in np.unique(kf.point_ids[kf.point_ids >= 0]):
-            self.map.update_descriptor(int(pid))
+        self.map.update_descriptors(np.unique(kf.point_ids[kf.point_ids >= 0]))
         self.cull(kf.id)
         ms["fuse_cull"] = (time.perf_counter() - t) * 1e3
         t = time.perf_counter()

@@ -179,6 +179,27 @@ class Map:
         dist = descriptor_rows(D[a], D[b]).reshape(n, n)
         mp.descriptor = D[int(np.argmin(np.median(dist, axis=1)))].copy()
 
+    def update_descriptors(self, pt_ids) -> None:
+        """``update_descriptor`` for many points at once (same result): binary descriptors of the points with
+        the same number of observations are compared in one popcount over the group (~10x fewer Python steps)."""
+        groups: dict[int, list[int]] = {}
+        for pid in pt_ids:
+            n = len(self.points[int(pid)].observations)
+            if n >= 3:
+                groups.setdefault(n, []).append(int(pid))
+        for n, ids in groups.items():
+            D = np.stack([np.stack([self.keyframes[k].features.desc[i] for k, i in self.points[p].observations.items()])
+                          for p in ids])  # (G, n, D)
+            if D.dtype != np.uint8 or D.shape[2] % 8:
+                for p in ids:
+                    self.update_descriptor(p)
+                continue
+            w = np.ascontiguousarray(D).view(np.uint64)  # (G, n, D/8)
+            dist = np.bitwise_count(w[:, :, None, :] ^ w[:, None, :, :]).sum(axis=3, dtype=np.int64)
+            best = np.argmin(np.median(dist.astype(np.float64), axis=2), axis=1)
+            for p, row, b in zip(ids, D, best.tolist()):
+                self.points[p].descriptor = row[b].copy()
+
     def apply_adjustment(self, poses: dict, points: dict, inliers: np.ndarray, obs_kf, obs_pt, fixed=(),
                          depth_only: np.ndarray | None = None) -> None:
         """Write a bundle adjustment back: keyframe poses (not those in ``fixed``), the points still in the map,
