@@ -38,7 +38,7 @@ log = logging.getLogger(__name__)
 
 SIDECAR_VERSION = 1
 # stats.csv columns shown in the per-stage table, in pipeline order; other ms_* columns follow
-STAGES = ("features", "depth", "pose", "mapping", "map_create", "map_fuse_cull", "map_ba", "map_loop")
+STAGES = ("features", "depth", "pose", "mapping", "map_create", "map_fuse_cull", "map_ba", "map_wait", "map_loop")
 PER_FRAME = ("features", "depth", "pose", "total")  # run on every frame: median ms/frame
 
 @dataclass(frozen=True)

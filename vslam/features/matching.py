@@ -112,12 +112,7 @@ def _best_pairs_binary(valid: np.ndarray, ki: np.ndarray, pt_desc: np.ndarray, k
     if ratio is not None:
         sec = np.where(two[has, 1] != big, two[has, 1] // (n + 1), np.inf)
         ok &= best_d < ratio * sec
-    best_q, best_t, best_d = best_q[ok], best_t[ok], best_d[ok]
-    order = np.lexsort((best_q, best_d, best_t))
-    best_q, best_t = best_q[order], best_t[order]
-    keep = np.r_[True, best_t[1:] != best_t[:-1]] if len(best_t) else np.zeros(0, bool)
-    out = np.stack([best_q[keep], best_t[keep]], axis=1).astype(np.int64).reshape(-1, 2)
-    return out[np.argsort(out[:, 0], kind="stable")]
+    return _one_per_target(best_q[ok], best_t[ok], best_d[ok])
 
 
 def best_pairs(qi: np.ndarray, ti: np.ndarray, dist: np.ndarray, max_dist: float, ratio: float | None) -> np.ndarray:
@@ -135,7 +130,12 @@ def best_pairs(qi: np.ndarray, ti: np.ndarray, dist: np.ndarray, max_dist: float
         sec = np.full(int(qi.max()) + 1 if len(qi) else 0, np.inf)
         sec[qi[second]] = dist[second]
         ok &= best_d < ratio * sec[best_q]
-    best_q, best_t, best_d = best_q[ok], best_t[ok], best_d[ok]
+    return _one_per_target(best_q[ok], best_t[ok], best_d[ok])
+
+
+def _one_per_target(best_q: np.ndarray, best_t: np.ndarray, best_d: np.ndarray) -> np.ndarray:
+    """Each query's best target -> one query per target (smallest distance, then lowest query index) as
+    (K,2) (query, target) pairs sorted by query."""
     order = np.lexsort((best_q, best_d, best_t))
     best_q, best_t = best_q[order], best_t[order]
     keep = np.r_[True, best_t[1:] != best_t[:-1]] if len(best_t) else np.zeros(0, bool)

@@ -72,8 +72,11 @@ class MappingConfig:
     ba_min_anchor_points: int = 30
     # Local BA in a second process (``vslam.backend.worker``) while tracking goes on, ORB-SLAM's LocalMapping
     # thread on a fixed schedule: the result is written back ``ba_lag_frames`` frames after its keyframe, or
-    # before the next keyframe is mapped if that comes first, so the same input still gives the same
-    # trajectory. The frames in between track against the map as it was. 0 = solve at once, in this process.
+    # when the next keyframe is wanted if that comes first (the keyframe decision is then taken again on the
+    # adjusted map), so the same input still gives the same trajectory. The frames in between track against
+    # the map as it was. 0 = solve at once, in this process. At 10 (bench rows ``*-async``): TUM teddy 46.1 vs
+    # 51.9 ms/frame, ATE 0.0048 vs 0.0044 m; the stereo loop room 114 vs 118 ms/frame but 0.0342 vs 0.0201 m
+    # (stereo points need their BA before they are tracked); monocular KITTI is lost at long lags.
     ba_lag_frames: int = 0
 
 
