@@ -49,7 +49,8 @@ class BAWorker:
         self._proc: subprocess.Popen | None = None
         self._waiting = 0
 
-    def submit(self, problem: BAProblem, camera: StereoCamera, cfg: BackendConfig) -> None:
+    def start(self) -> None:
+        """Start the process now (it imports GTSAM for ~0.3 s while the caller reads its first frames)."""
         if self._proc is None or self._proc.poll() is not None:
             env = dict(os.environ)
             root = str(Path(__file__).resolve().parents[2])  # the folder holding the vslam package
@@ -57,7 +58,10 @@ class BAWorker:
             self._proc = subprocess.Popen([sys.executable, "-m", "vslam.backend.worker"], stdin=subprocess.PIPE,
                                           stdout=subprocess.PIPE, env=env)
             self._waiting = 0
-        _send(self._proc.stdin, (problem, camera, cfg))  # type: ignore[arg-type]
+
+    def submit(self, problem: BAProblem, camera: StereoCamera, cfg: BackendConfig) -> None:
+        self.start()
+        _send(self._proc.stdin, (problem, camera, cfg))  # type: ignore[union-attr,arg-type]
         self._waiting += 1
 
     def result(self) -> BAResult:

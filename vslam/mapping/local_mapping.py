@@ -92,6 +92,9 @@ class LocalMapper:
         # line landmarks (``vslam.mapping.line_map.LineSlam``, issue 6) join local BA when set
         self.lines = None
         self.worker: BAWorker | None = None  # ba_lag_frames > 0: the process that solves local BA
+        if cfg.ba and cfg.ba_lag_frames > 0:
+            self.worker = BAWorker()
+            self.worker.start()
         self.pending = None  # (problem, obs keyframes, obs points, fixed) of the worker's BA not yet written back
 
     def process(self, kf: KeyFrame, tracked_ids: np.ndarray) -> dict[str, float]:
