@@ -85,10 +85,14 @@ class BAWorker:
             except (OSError, subprocess.TimeoutExpired):
                 self._proc.kill()
                 self._proc.wait()
+            self._proc.stdout.close()  # type: ignore[union-attr]
             self._proc = None
 
     def __del__(self) -> None:
-        self.close()
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: the child sees EOF and exits on its own
+            pass
 
 
 def _serve() -> None:
