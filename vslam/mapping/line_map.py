@@ -287,11 +287,13 @@ class LineSlam:
         return ia[keep], ib[keep], L[keep], np.stack([ea[keep], eb[keep]], axis=1)
 
     def ba_problem(self, kf_ids: list[int]) -> LineProblem | None:
-        """Lines seen by the BA's keyframes (at most ``ba_max_lines``, most observed first) with >= 2 views."""
+        """Lines seen by the BA's keyframes (at most ``ba_max_lines``, most observed first) with enough views
+        among them (``LineConfig.ba_min_views``)."""
         lids = self.lmap.seen_by(kf_ids)
         kset = set(kf_ids)
         cand = [(len([k for k in self.lmap.lines[int(i)].observations if k in kset]), int(i)) for i in lids]
-        cand = sorted([c for c in cand if c[0] >= 2], key=lambda c: (-c[0], c[1]))[: self.cfg.ba_max_lines]
+        views = self.cfg.ba_min_views or (3 if self.sensor == "mono" else 2)
+        cand = sorted([c for c in cand if c[0] >= max(2, views)], key=lambda c: (-c[0], c[1]))[: self.cfg.ba_max_lines]
         if not cand:
             return None
         kf, ln, seg = [], [], []
