@@ -268,9 +268,8 @@ def _levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values
     1e-15 m) in 7 % less time; multifrontal with this order is slower than the default."""
     params = fx.lm_params(iterations)
     if schur:
-        keys = list(values.keys())
         order = gtsam.Ordering()
-        for k in [k for k in keys if gtsam.Symbol(k).chr() != ord("x")] + [k for k in keys if gtsam.Symbol(k).chr() == ord("x")]:
+        for k in sorted(values.keys(), key=lambda k: gtsam.Symbol(k).chr() == ord("x")):  # stable: poses last
             order.push_back(k)
         params.setOrdering(order)
         params.setLinearSolverType("SEQUENTIAL_CHOLESKY")

@@ -72,7 +72,8 @@ class LineWindow:
         self.dim = int(sum(len(rows) * (2 * n - 4) for n, rows in self.groups))
         self._primed = False
         self.T_bc = None if T_body_cam is None else np.asarray(T_body_cam, dtype=np.float64)
-        self._ad_cb = None if self.T_bc is None else _adjoint(np.linalg.inv(self.T_bc))
+        # a right perturbation of the body pose is Ad(T_cam_body) of the camera's ((omega, v) order, as GTSAM's)
+        self._ad_cb = None if self.T_bc is None else gtsam.Pose3(np.linalg.inv(self.T_bc)).AdjointMap()
 
     def camera_poses(self, v: gtsam.Values) -> np.ndarray:
         """(K,4,4) T_world_cam of the window's pose keys in ``v`` (body poses carried through T_body_cam)."""
@@ -220,15 +221,6 @@ class LineWindow:
             return r
 
         return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(self.dim), self.pose_keys, error)
-
-
-def _adjoint(T: np.ndarray) -> np.ndarray:
-    """(6,6) adjoint of T = (R, t) for (omega, v) tangents: [[R, 0], [[t]x R, R]] (GTSAM's Pose3 order)."""
-    R, t = T[:3, :3], T[:3, 3]
-    out = np.zeros((6, 6))
-    out[:3, :3], out[3:, 3:] = R, R
-    out[3:, :3] = _skew_stack(t[None])[0] @ R
-    return out
 
 
 def _so3_exp_batch(w: np.ndarray) -> np.ndarray:

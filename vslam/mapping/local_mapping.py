@@ -121,10 +121,7 @@ class LocalMapper:
         ms["fuse_cull"] = (time.perf_counter() - t) * 1e3
         t = time.perf_counter()
         if self.cfg.ba and len(self.map.keyframes) >= 2:
-            if self.cfg.ba_lag_frames > 0:
-                self.submit_bundle_adjust(kf.id)
-            else:
-                self.bundle_adjust(kf.id)
+            self.bundle_adjust(kf.id, in_worker=self.cfg.ba_lag_frames > 0)
         ms["ba"] = (time.perf_counter() - t) * 1e3
         return ms
 
@@ -246,33 +243,24 @@ class LocalMapper:
             fixed.append(older[0])
             fixed_set.add(older[0])
 
-    def bundle_adjust(self, kf_id: int) -> None:
-        """Local BA around ``kf_id``, solved here and written back now."""
+    def bundle_adjust(self, kf_id: int, in_worker: bool = False) -> None:
+        """Local BA around ``kf_id``, solved here and written back now, or (``in_worker``) handed to the worker
+        process and left in ``pending`` until ``flush``. Visual-inertial windows are always solved here."""
         job = self._ba_job(kf_id)
         if job is None:
             return
         problem, okf, opt, fixed, chain = job
         if len(chain) >= 2:
             res = self.inertial.solve(problem, self.stereo_cam, self.backend)
+        elif in_worker:
+            if self.worker is None:
+                self.worker = BAWorker()
+            self.worker.submit(problem, self.stereo_cam, self.backend)
+            self.pending = (problem, okf, opt, fixed)
+            return
         else:
             res = local_bundle_adjustment(problem, self.stereo_cam, self.backend)
         self._apply_ba(problem, res, okf, opt, fixed)
-
-    def submit_bundle_adjust(self, kf_id: int) -> bool:
-        """Local BA around ``kf_id`` in the worker process (``MappingConfig.ba_lag_frames``); ``flush`` writes it
-        back. Visual-inertial windows are solved at once. -> True when a solve is pending."""
-        job = self._ba_job(kf_id)
-        if job is None:
-            return False
-        problem, okf, opt, fixed, chain = job
-        if len(chain) >= 2:
-            self._apply_ba(problem, self.inertial.solve(problem, self.stereo_cam, self.backend), okf, opt, fixed)
-            return False
-        if self.worker is None:
-            self.worker = BAWorker()
-        self.worker.submit(problem, self.stereo_cam, self.backend)
-        self.pending = (problem, okf, opt, fixed)
-        return True
 
     def flush(self) -> float:
         """Wait for the pending worker BA (if any) and write it back. -> ms spent waiting for the worker."""
