@@ -194,6 +194,37 @@ def test_local_ba_point_seen_only_by_fixed_keyframes_is_optimised():
     assert np.linalg.norm(r.points[0] - pts[0]) < 1e-6
 
 
+def test_local_ba_solves_single_view_stereo_points_in_closed_form():
+    """A point with one stereo observation says nothing about the poses: the poses come out exactly as without
+    it, and the point lands where its measurement back-projects from its keyframe's optimised pose."""
+    rng = np.random.default_rng(17)
+    poses, pts, prob = S.full_scene(rng, n_kf=5, stereo_frac=0.5)
+    prob.fixed = {0}
+    prob.obs_uv += rng.normal(0, 0.5, prob.obs_uv.shape)
+    prob.obs_ur += rng.normal(0, 0.5, prob.obs_ur.shape)
+    base = S.perturb(rng, prob)
+    extra = S.perturb(rng, prob)
+    extra.poses, extra.points = base.poses, dict(base.points)
+    n = len(pts)
+    for i, k in enumerate([2, 3, 3, 4]):  # four single-view points; the last one mono (it stays in the graph)
+        pc = np.array([0.3 * i - 0.5, 0.2, 5.0 + i])
+        pw = poses[k][:3, :3] @ pc + poses[k][:3, 3]
+        uv, ur, _ = project_stereo(poses[k], pw[None], S.CAM)
+        extra.points[n + i] = pw + rng.normal(0, 0.05, 3)
+        extra.obs_kf, extra.obs_pt = np.append(extra.obs_kf, k), np.append(extra.obs_pt, n + i)
+        extra.obs_uv = np.vstack([extra.obs_uv, uv + rng.normal(0, 0.5, 2)])
+        extra.obs_ur = np.append(extra.obs_ur, np.nan if i == 3 else ur[0] + rng.normal(0, 0.5))
+    r0, r1 = local_bundle_adjustment(base, S.CAM), local_bundle_adjustment(extra, S.CAM)
+    for k in r0.poses:
+        np.testing.assert_allclose(r1.poses[k], r0.poses[k], atol=1e-7)
+    for i in range(3):
+        k = int(extra.obs_kf[len(prob.obs_kf) + i])
+        uv, ur, _ = project_stereo(r1.poses[k], r1.points[n + i][None], S.CAM)
+        np.testing.assert_allclose(uv[0], extra.obs_uv[len(prob.obs_kf) + i], atol=1e-8)
+        np.testing.assert_allclose(ur[0], extra.obs_ur[len(prob.obs_kf) + i], atol=1e-8)
+    assert r1.inliers[len(prob.obs_kf):].all()
+
+
 def test_local_ba_per_observation_sigma():
     rng = np.random.default_rng(15)
     poses, pts, prob = S.full_scene(rng, stereo_frac=0.0)
