@@ -101,11 +101,14 @@ def open_dataset(cfg: DatasetConfig) -> Sequence:
     return open_sequence(path, kind=kind, **options)
 
 
-def prefetch(seq: Sequence, n: int, depth: int = 3) -> Iterator[Frame]:
-    """The first ``n`` frames of ``seq``, decoded on a background thread while the caller tracks.
+def prefetch(seq: Sequence, n: int, depth: int = 3,
+             prepare: Callable[[Frame], Any] | None = None) -> Iterator[tuple[Frame, Any]]:
+    """The first ``n`` frames of ``seq`` as (frame, prepare(frame) or None), made on a background thread while
+    the caller tracks.
 
-    PNG decoding (cv2.imread releases the GIL) then overlaps tracking on a second core; the order
-    and content of the frames are unchanged, and an exception in the reader is re-raised here.
+    PNG decoding and ``prepare`` (the tracker's image-only front end: OpenCV and torch release the GIL) then
+    overlap tracking on a second core; the order and content of the frames are unchanged, and an exception
+    in the reader or in ``prepare`` is re-raised here.
     """
     q: queue.Queue = queue.Queue(maxsize=depth)
     stop = threading.Event()
@@ -116,7 +119,7 @@ def prefetch(seq: Sequence, n: int, depth: int = 3) -> Iterator[Frame]:
             for k, frame in enumerate(seq):
                 if k >= n or stop.is_set():
                     break
-                q.put(frame)
+                q.put((frame, prepare(frame) if prepare is not None else None))
             q.put(done)
         except BaseException as e:  # handed to the consumer, raised in its thread
             q.put(e)
@@ -198,12 +201,14 @@ class Pipeline:
             with open(stats_path, "w", newline="") as fstats:
                 sw = csv.writer(fstats)
                 sw.writerow(STAT_COLUMNS)
-                frames, k = prefetch(seq, n_total), -1
+                ahead = isinstance(odo, SlamTracker) and cfg.slam.frontend_thread
+                frames, k = prefetch(seq, n_total, prepare=odo.frontend if ahead else None), -1
                 while True:
                     t_wait = time.perf_counter()
-                    frame = next(frames, None)  # decoded on a background thread: this is the time tracking waited
-                    if frame is None:  # the generator is exhausted (and has joined its thread)
+                    item = next(frames, None)  # made on a background thread: this is the time tracking waited
+                    if item is None:  # the generator is exhausted (and has joined its thread)
                         break
+                    frame, front = item
                     k += 1
                     ms_decode = (time.perf_counter() - t_wait) * 1e3
                     if stamps and not frame.timestamp > stamps[-1]:
@@ -219,7 +224,7 @@ class Pipeline:
                         stats.append(row)
                         continue
                     t0 = time.perf_counter()
-                    est: FrameEstimate = odo.track(frame)
+                    est: FrameEstimate = odo.track(frame, front) if front is not None else odo.track(frame)
                     ms = (time.perf_counter() - t0) * 1e3
                     for w in writers.values():
                         w.write(frame.timestamp, est.T_world_cam)

@@ -4,7 +4,10 @@ Read back from the run's ``stats.csv``, so a profile costs the run nothing extra
 profiled again (``python -m vslam.profiling runs/x/stats.csv``). Per stage: the mean ms per frame (a stage that
 runs on keyframes only, such as local BA, counts 0 on the other frames, so the means add up to the frame
 time), the median over the frames it ran on, how many frames that was, and its share of the mean total.
-"decode" is the time tracking waited for the next frame (frames are read on a background thread).
+"decode" is the time tracking waited for the next frame (frames are read on a background thread). With
+``slam.frontend_thread`` (the default) that thread also computes the image-only stages (features, lines and,
+without dynamic filtering, depth) ahead of tracking: their rows are then their cost there, on the second core,
+and not part of "total" (the tracking call); "decode" includes any wait for them.
 """
 
 from __future__ import annotations

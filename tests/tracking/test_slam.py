@@ -127,3 +127,41 @@ def test_local_ba_in_the_worker_process_keeps_the_trajectory(tmp_path):
     st2.finish(tmp_path)  # writes the last BA back and stops the worker
     assert st2.mapper.pending is None and st2.mapper.worker is None
     st1.mapper.close()
+
+
+def test_front_end_computed_ahead_gives_the_same_trajectory(tmp_path):
+    """``vslam run`` computes keypoints, stereo depth and line segments on its prefetch thread: the poses must
+    be the very ones ``track`` computes by itself (a stereo rig with lines exercises all three)."""
+    from dataclasses import replace
+
+    cfg = SlamConfig()
+    cfg = replace(cfg, lines=replace(cfg.lines, enabled=True))
+    seq = _seq("stereo", 25)
+    _, inline, _ = _run(seq, "stereo", cfg=cfg)
+    st = SlamTracker(seq.calibration, "stereo", cfg)
+    ahead = [st.track(f, st.frontend(f)).T_world_cam for f in seq]
+    np.testing.assert_array_equal(np.array(ahead), inline.poses)
+    runs = {}
+    for on in (True, False):
+        pc = PipelineConfig.load(None, {"dataset": {"kind": "synthetic", "sensor": "rgbd", "synthetic": {"n_frames": 20, **SMALL}},
+                                        "slam": {"frontend_thread": on}, "output": {"dir": str(tmp_path / str(on)), "report": False}})
+        runs[on] = Pipeline(pc).run()
+    np.testing.assert_array_equal(runs[True].trajectory.poses, runs[False].trajectory.poses)
+
+
+def test_local_map_is_gathered_again_after_any_map_change():
+    seq = _seq("rgbd", 12)
+    st, _, _ = _run(seq, "rgbd")
+    tr, ref = st.tracker, st.ref_kf
+    a = tr.local_points(ref)
+    assert tr.local_points(ref) is a  # unchanged map: the same local map, not gathered again
+    pid = int(a.ids[0])
+    st.map.apply_adjustment({}, {pid: st.map.points[pid].xyz + 1.0}, np.ones(0, bool), [], [])
+    b = tr.local_points(ref)
+    assert b is not a
+    np.testing.assert_array_equal(b.xyz[0], a.xyz[0] + 1.0)
+    st.map.points[pid].xyz = st.map.points[pid].xyz - 1.0  # a direct write must say so
+    st.map.touch()
+    np.testing.assert_allclose(tr.local_points(ref).xyz[0], a.xyz[0], atol=1e-12)
+    st.map.remove_point(pid)
+    assert pid not in tr.local_points(ref).ids

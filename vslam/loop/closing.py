@@ -178,6 +178,7 @@ class LoopCloser:
             ref = mp.first_kf if mp.first_kf in m.keyframes else min(mp.observations)
             D = delta[ref]
             mp.xyz = D[:3, :3] @ mp.xyz + D[:3, 3]
+        m.touch()
         if self.mapper is not None and self.mapper.lines is not None:
             self.mapper.lines.follow(delta)
 

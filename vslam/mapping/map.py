@@ -70,6 +70,13 @@ class Map:
         self.points: dict[int, MapPoint] = {}
         self._next_kf = 0
         self._next_pt = 0
+        # Bumped by every change of observations, point positions or descriptors (writers outside this class
+        # call ``touch``): what tracking derived from the map stays valid while it is unchanged.
+        self.revision = 0
+
+    def touch(self) -> None:
+        """Mark the map changed (for code that moves points or keyframes directly)."""
+        self.revision += 1
 
     # -- creation / removal ------------------------------------------------
     def add_keyframe(self, frame_index: int, timestamp: float, T_world_cam: np.ndarray, features: Features,
@@ -78,6 +85,7 @@ class Map:
                       depth, ur, np.full(len(features), -1, np.int64))
         self.keyframes[kf.id] = kf
         self._next_kf += 1
+        self.revision += 1
         return kf
 
     def add_point(self, xyz: np.ndarray, kf_id: int, kp_idx: int) -> MapPoint:
@@ -91,6 +99,7 @@ class Map:
 
     def add_observation(self, pt_id: int, kf_id: int, kp_idx: int) -> None:
         kf, mp = self.keyframes[kf_id], self.points[pt_id]
+        self.revision += 1
         old = int(kf.point_ids[kp_idx])
         if old >= 0 and old != pt_id:
             self.remove_observation(old, kf_id)
@@ -106,6 +115,7 @@ class Map:
             return
         kp = mp.observations.pop(kf_id)
         kf = self.keyframes[kf_id]
+        self.revision += 1
         if kf.point_ids[kp] == pt_id:
             kf.point_ids[kp] = -1
         if not mp.observations:
@@ -115,6 +125,7 @@ class Map:
         mp = self.points.pop(pt_id, None)
         if mp is None:
             return
+        self.revision += 1
         for kf_id, kp in mp.observations.items():
             kf = self.keyframes[kf_id]
             if kf.point_ids[kp] == pt_id:
@@ -173,6 +184,7 @@ class Map:
         mp = self.points[pt_id]
         if len(mp.observations) < 3:
             return
+        self.revision += 1
         D = np.stack([self.keyframes[k].features.desc[i] for k, i in mp.observations.items()])
         n = len(D)
         a, b = np.repeat(np.arange(n), n), np.tile(np.arange(n), n)
@@ -183,6 +195,7 @@ class Map:
         """``update_descriptor`` for many points at once (same result): binary descriptors of the points with
         the same number of observations are compared in one popcount over the group (~10x fewer Python steps)."""
         groups: dict[int, list[int]] = {}
+        self.revision += 1
         for pid in pt_ids:
             n = len(self.points[int(pid)].observations)
             if n >= 3:
@@ -204,6 +217,7 @@ class Map:
                          depth_only: np.ndarray | None = None) -> None:
         """Write a bundle adjustment back: keyframe poses (not those in ``fixed``), the points still in the map,
         and drop the observations (obs_kf[i], obs_pt[i]) the BA classified as outliers (``inliers[i]`` False)."""
+        self.revision += 1
         for k, T in poses.items():
             if k not in fixed:
                 self.keyframes[k].T_world_cam = np.asarray(T, dtype=np.float64)

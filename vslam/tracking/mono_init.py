@@ -89,6 +89,7 @@ def _two_view_ba(slam_map: Map, kf0: KeyFrame, kf1: KeyFrame, stereo_cam: Stereo
     kf1.T_world_cam = np.asarray(res.poses.get(kf1.id, kf1.T_world_cam), dtype=np.float64)
     for p, X in res.points.items():
         slam_map.points[p].xyz = np.asarray(X, dtype=np.float64)
+    slam_map.touch()
     for i in np.flatnonzero(~np.asarray(res.inliers, bool)):
         slam_map.remove_observation(opt[i], okf[i])
     for pid in [p for p, mp in slam_map.points.items() if len(mp.observations) < 2]:
@@ -101,3 +102,4 @@ def _two_view_ba(slam_map: Map, kf0: KeyFrame, kf1: KeyFrame, stereo_cam: Stereo
         kf1.T_world_cam[:3, 3] *= s
         for mp in slam_map.points.values():
             mp.xyz = mp.xyz * s
+        slam_map.touch()

@@ -57,6 +57,23 @@ class SlamConfig:
     inertial: VioConfig = field(default_factory=VioConfig)  # visual-inertial mode (vslam.tracking.vio), off by default
     lines: LineConfig = field(default_factory=LineConfig)  # point + Plücker-line features (issue 6), off by default
     dynamic: DynamicConfig = field(default_factory=DynamicConfig)  # dynamic-object filtering (issue 5), off by default
+    # Keypoints, line segments and keypoint depth depend on the image alone: ``vslam run`` computes them for the
+    # next frames on its prefetch thread while this one is tracked (OpenCV / torch release the GIL, so it uses a
+    # second core). Same numbers either way; off = everything on the tracking thread.
+    frontend_thread: bool = True
+
+
+@dataclass
+class FrontEnd:
+    """What one frame's images alone determine (no map state), from ``SlamTracker.frontend``: keypoints, the
+    right image's keypoints (stereo), line segments (lines on), keypoint depth (None: computed in ``track``,
+    after dynamic filtering), and ms per stage where it ran."""
+
+    feats: Features
+    right: Features | None
+    lines: LineFeatures | None
+    depth: np.ndarray | None
+    ms: dict[str, float]
 
 
 class SlamTracker:
@@ -135,6 +152,20 @@ class SlamTracker:
             return feats, None
         return feats, self.extractor.detect(right_img, self.calib.cam1)  # type: ignore[arg-type]
 
+    def frontend(self, frame: Frame) -> FrontEnd:
+        """The image-only stages of ``track``; safe to run on one other thread while ``track`` runs (the
+        extractors are then used by that thread alone, the map is not read)."""
+        t0 = time.perf_counter()
+        feats, right = self._extract(frame)
+        t1 = time.perf_counter()
+        lines = self.lines.detect(frame.image) if self.lines is not None else None
+        t2 = time.perf_counter()
+        # dynamic filtering drops keypoints first, and rectified stereo matching depends on which are left
+        depth = self._depth(frame, feats, right) if self.dynamic is None else None
+        t3 = time.perf_counter()
+        ms = {"features": (t1 - t0) * 1e3, "lines": (t2 - t1) * 1e3, "depth": (t3 - t2) * 1e3}
+        return FrontEnd(feats, right, lines, depth, ms)
+
     def _depth(self, frame: Frame, feats: Features, right: Features | None) -> np.ndarray:
         tc = self.cfg.tracking
         if self.sensor == "rgbd":
@@ -146,22 +177,24 @@ class SlamTracker:
             return depth_stereo(feats, right, self.calib, tc.min_depth, tc.max_depth, tc.stereo_max_px)
         return np.full(len(feats), np.nan)
 
-    def track(self, frame: Frame) -> FrameEstimate:
+    def track(self, frame: Frame, front: FrontEnd | None = None) -> FrameEstimate:
+        """One frame; ``front``: its ``frontend(frame)`` if computed ahead (else computed here)."""
         t0 = time.perf_counter()
         if self.vio is not None:
             self.vio.add_imu(frame)
-        feats, right = self._extract(frame)
-        t_feat = time.perf_counter()
+        if front is None:
+            front = self.frontend(frame)
+        feats, t_dyn = front.feats, time.perf_counter()
         if self.dynamic is not None:  # issue 5: keypoints on moving objects reach neither tracking nor mapping
             feats = feats.subset(np.flatnonzero(self.dynamic.keep(frame, feats)))
-        t_dyn = time.perf_counter()
+        ms_dynamic = (time.perf_counter() - t_dyn) * 1e3
         if self.lines is not None:
-            self._line_feats, self._line_ids = self.lines.detect(frame.image), None
+            self._line_feats, self._line_ids = front.lines, None
             if self.mono_init is not None and self.ref_kf is None:  # the initialiser's reference may be any recent frame
                 self._pre_init_lines[frame.index] = self._line_feats
                 self._pre_init_lines = dict(list(self._pre_init_lines.items())[-(self.mono_init.max_tries + 2):])
         t1 = time.perf_counter()
-        depth = self._depth(frame, feats, right)
+        depth = front.depth if front.depth is not None else self._depth(frame, feats, front.right)
         ur = stereo_ur(feats.uv, depth, self.cam.fx, self.baseline) if self.baseline > 0 else np.full(len(feats), np.nan)
         ms_map: dict[str, float] = {}
         ms_flush = 0.0  # (features are extracted while the worker may still be solving)
@@ -243,12 +276,14 @@ class SlamTracker:
         est.T_world_cam = self.T_world_cam.copy()
         self.frames.record(frame.index, self.ref_kf, self.T_world_cam)
         ms_map.pop("flush", None)
-        est.times_ms = {"features": (t_feat - t0) * 1e3, "depth": (t2 - t1) * 1e3 - ms_flush, "pose": (t3 - t2) * 1e3,
+        # stage costs where they ran; those computed ahead on the prefetch thread are not in this call's time
+        ms_depth = (t2 - t1) * 1e3 - ms_flush + (front.ms["depth"] if front.depth is not None else 0.0)
+        est.times_ms = {"features": front.ms["features"], "depth": ms_depth, "pose": (t3 - t2) * 1e3,
                         "mapping": (t4 - t3) * 1e3 + ms_flush, **{f"map_{k}": v for k, v in ms_map.items()}}
         if self.dynamic is not None:
-            est.times_ms["dynamic"] = (t_dyn - t_feat) * 1e3
+            est.times_ms["dynamic"] = ms_dynamic
         if self.lines is not None:
-            est.times_ms["lines"] = (t1 - t_dyn) * 1e3
+            est.times_ms["lines"] = front.ms["lines"]
             est.n_lines = len(self._line_feats)
             est.n_line_inliers = int((self._line_ids >= 0).sum()) if self._line_ids is not None else 0
         return est

@@ -138,6 +138,7 @@ class Tracker:
                  backend: BackendConfig):
         self.map, self.cam, self.stereo_cam, self.cfg, self.backend = slam_map, cam, stereo_cam, cfg, backend
         self.pycam, self.ao = pnp_setup(cam, cfg.ransac_px, cfg.seed, 30, 1000)
+        self._local: tuple[tuple, LocalPoints] | None = None  # the last local map, valid while the map is unchanged
 
     # -- building blocks ------------------------------------------------------
     def pnp(self, uv: np.ndarray, X: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
@@ -173,9 +174,15 @@ class Tracker:
 
     def local_points(self, ref_kf: int) -> LocalPoints:
         """The local map of ``ref_kf`` (it and its most covisible keyframes) with positions and descriptors,
-        gathered once per frame for both matching rounds."""
+        gathered for both matching rounds, and again only when the reference or the map (``Map.revision``) has
+        changed: between keyframes it is the same for every frame."""
+        key = (self.map, self.map.revision, ref_kf)
+        if self._local is not None and self._local[0] == key:
+            return self._local[1]
         _, pids = self.map.local_map(ref_kf, self.cfg.local_keyframes)
-        return LocalPoints(pids, self.map.points_xyz(pids), self.map.descriptors(pids))
+        local = LocalPoints(pids, self.map.points_xyz(pids), self.map.descriptors(pids))
+        self._local = (key, local)
+        return local
 
     def _result(self, T: np.ndarray, pids: np.ndarray, kps: np.ndarray, inl: np.ndarray, n: int, method: str, n_matches: int) -> TrackResult:
         point_ids = np.full(n, -1, np.int64)

@@ -411,3 +411,4 @@ def transform_map(slam_map: Map, T: np.ndarray, scale: float) -> None:
             kf.depth = kf.depth * scale
     for mp in slam_map.points.values():
         mp.xyz = R @ (scale * mp.xyz) + t
+    slam_map.touch()
