@@ -167,3 +167,19 @@ def test_batched_descriptor_update_equals_one_point_at_a_time():
     assert sum(len(m.points[i].observations) >= 3 for i in ids) > 20
     for i in ids:
         np.testing.assert_array_equal(m.points[i].descriptor, one.points[i].descriptor)
+
+
+def test_fusion_skips_points_merged_away_meanwhile():
+    """Loop fusion hands one candidate list to several keyframes and merges as it goes: ids gone from the map
+    are skipped, the rest still fuse."""
+    m = _map_with(2)
+    cam = PinholeCamera(320, 240, 262.5, 262.5, 159.5, 119.5)
+    mapper = LocalMapper(m, cam, StereoCamera(262.5, 262.5, 159.5, 119.5, 0.08), "rgbd", MappingConfig(), BackendConfig())
+    target = m.keyframes[1]
+    xyz = cam.backproject(target.features.uv[5:6], np.array([2.0]))[0]
+    p = m.add_point(xyz, 0, 5)
+    target.features.desc[5] = m.keyframes[0].features.desc[5]  # the same corner seen again
+    gone = m.add_point(np.array([0.0, 0.0, 2.0]), 0, 6)
+    m.remove_point(gone.id)
+    assert mapper._fuse_into(target, np.array([gone.id, p.id])) == 1
+    assert p.observations == {0: 5, 1: 5}
