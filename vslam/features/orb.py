@@ -61,13 +61,13 @@ class OrbExtractor:
         empty = Features.empty(scale_factor=self.cfg.scale_factor)
         if not kps:
             return empty
-        xy = np.array([k.pt for k in kps], dtype=np.float64)
+        xy = cv2.KeyPoint_convert(kps).astype(np.float64)  # float32 -> float64: the same values as k.pt
         resp = np.array([k.response for k in kps], dtype=np.float64)
         keep = bucket(xy, resp, gray.shape[:2], self.cfg.n_features, self.cfg.grid_cols, self.cfg.grid_rows)
         kps, desc = self.orb.compute(gray, [kps[i] for i in keep])
         if desc is None or not kps:
             return empty
-        raw = np.array([k.pt for k in kps], dtype=np.float64)
+        raw = cv2.KeyPoint_convert(kps).astype(np.float64)
         return Features(
             raw=raw, uv=camera.undistort_points(raw), desc=desc,
             octave=np.array([k.octave for k in kps], dtype=np.int64),

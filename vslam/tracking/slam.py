@@ -428,7 +428,8 @@ class SlamTracker:
         ref = self.map.keyframes[self.ref_kf]  # type: ignore[index]
         min_obs = min(3, len(self.map.keyframes))  # ORB-SLAM: 2 while the map has <= 2 keyframes; 1 for the first
         ref_ids = ref.point_ids[ref.point_ids >= 0]
-        ref_tracked = sum(1 for p in ref_ids if len(self.map.points[int(p)].observations) >= min_obs)
+        points = self.map.points
+        ref_tracked = sum(1 for p in ref_ids.tolist() if len(points[p].observations) >= min_obs)
         close = np.isfinite(depth) & (depth < tc.close_baselines * self.baseline)
         n_close_tracked = int(np.sum(close & (point_ids >= 0)))
         n_close_untracked = int(np.sum(close & (point_ids < 0)))

@@ -201,10 +201,11 @@ class Tracker:
         if len(mp) < self.cfg.min_inliers:
             return TrackResult(T, False, np.full(len(feats), -1, np.int64), len(mp), 0, method)
         T2, inl = self.refine(T, mp, mk, ur, feats, X)
-        for pid in local.ids[vis]:
-            self.map.points[int(pid)].n_visible += 1
-        for pid in mp[inl]:
-            self.map.points[int(pid)].n_found += 1
+        points = self.map.points
+        for pid in local.ids[vis].tolist():  # Python ints: ~2x faster dict lookups than numpy scalars
+            points[pid].n_visible += 1
+        for pid in mp[inl].tolist():
+            points[pid].n_found += 1
         res = self._result(T2, mp, mk, inl, len(feats), method, len(mp))
         if res.ok:  # issue 3: every measured pose says how uncertain it is (~0.1 ms)
             res.cov = pose_covariance(T2, X[inl], feats.uv[mk[inl]], ur[mk[inl]], self.stereo_cam, self.backend)
@@ -260,8 +261,9 @@ class Tracker:
     def best_reference(self, point_ids: np.ndarray, default: int) -> int:
         """The keyframe observing most of the frame's tracked points (ties: newest)."""
         counts: dict[int, int] = {}
-        for pid in point_ids[point_ids >= 0]:
-            for k in self.map.points[int(pid)].observations:
+        points = self.map.points
+        for pid in point_ids[point_ids >= 0].tolist():
+            for k in points[pid].observations:
                 counts[k] = counts.get(k, 0) + 1
         if not counts:
             return default
