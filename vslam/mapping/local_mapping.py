@@ -75,7 +75,7 @@ class MappingConfig:
     # when the next keyframe is wanted if that comes first (the keyframe decision is then taken again on the
     # adjusted map), so the same input still gives the same trajectory. The frames in between track against
     # the map as it was. 0 = solve at once, in this process. At 10 (bench rows ``*-async``): TUM teddy 46.1 vs
-    # 51.9 ms/frame, ATE 0.0048 vs 0.0044 m -- and 44.0 vs 44.1 ms/frame (ATE 0.0046 m) since the front end runs
+    # 51.9 ms/frame, ATE 0.0048 vs 0.0044 m -- and 43.3 vs 40.4 ms/frame (ATE 0.0046 m) since the front end runs
     # on the second core (``SlamConfig.frontend_thread``); the stereo loop room 0.0342 vs 0.0201 m (stereo
     # points need their BA before they are tracked: 0.0224 / 0.0272 m at lags 2 / 5); monocular KITTI is lost
     # at long lags.
