@@ -10,7 +10,7 @@ from tests.backend import _synth as S
 from vslam.backend import pose_only
 from vslam.backend.ba import BackendConfig, BAProblem, StereoCamera, local_bundle_adjustment, optimize_pose
 from vslam.backend.factors import FactorBuilder, L, X, pose3
-from vslam.backend.projection import measurement_matrix, project_stereo, whitened_sq_errors
+from vslam.backend.projection import backproject_cam, measurement_matrix, project_stereo, whitened_sq_errors
 from vslam.geometry.se3 import inv_T, make_T, so3_exp
 
 
@@ -38,6 +38,9 @@ def test_projection_matches_gtsam_stereo_camera():
         np.testing.assert_allclose([sp.uL(), sp.v(), sp.uR()], [uv[i, 0], uv[i, 1], ur[i]], atol=1e-9)
         np.testing.assert_allclose(mono.project(p), uv[i], atol=1e-9)
     np.testing.assert_allclose(z, pts_cam[:, 2], atol=1e-12)
+    meas = np.column_stack([uv, ur])  # and back: the inverse that places single-view points after local BA
+    back = backproject_cam(meas, S.CAM.fx, S.CAM.fy, S.CAM.cx, S.CAM.cy, S.CAM.baseline)
+    np.testing.assert_allclose(back, pts_cam, atol=1e-9)
 
 
 def test_gtsam_factors_take_T_world_cam_and_match_numpy_residuals():

@@ -79,6 +79,7 @@ import numpy as np
 from vslam.backend import factors as fx
 from vslam.backend.line_ba import LineProblem, camera_K_L, factors_within, line_chi2, line_estimates, line_terms
 from vslam.backend.pose_only import refine_pose
+from vslam.backend.projection import backproject_cam
 from vslam.backend.window import DenseWindow, dense_window
 
 
@@ -199,9 +200,10 @@ def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: Backe
     closed = _single_view(win, valid, cfg.closed_form_min_tied)
     idx = np.flatnonzero(valid & ~closed)
     if idx.size == 0:  # only single-view points: nothing constrains a pose
-        Twc, P = win.Twc0, _backprojected(win, closed, win.Twc0, win.P0.copy(), camera)
-        result.points = {int(j): P[i] for i, j in enumerate(win.pt_ids.tolist())}
-        result.inliers = valid & (win.chi2(Twc, P, camera) <= win.thr)
+        P = _backprojected(win, closed, win.Twc0, win.P0, camera)
+        for i in win.ip[closed].tolist():
+            result.points[int(win.pt_ids[i])] = P[i]
+        result.inliers = valid & (win.chi2(win.Twc0, P, camera) <= win.thr)
         result.ms = {"build": 0.0, "optimize": 0.0, "classify": 0.0, "total": 1e3 * (time.perf_counter() - t0)}
         return result
     used_k, used_p = np.unique(win.ik[idx]), np.unique(win.ip[idx])  # sorted, like GTSAM's key order
@@ -318,9 +320,7 @@ def _backprojected(win: DenseWindow, obs: np.ndarray, Twc: np.ndarray, P: np.nda
     i = np.flatnonzero(obs)
     if i.size == 0:
         return P
-    uL, v, uR = win.meas[i].T
-    z = camera.fx * camera.baseline / (uL - uR)
-    pc = np.stack([(uL - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z], axis=1)
+    pc = backproject_cam(win.meas[i], camera.fx, camera.fy, camera.cx, camera.cy, camera.baseline)
     T = Twc[win.ik[i]]
     P = P.copy()
     P[win.ip[i]] = np.einsum("mij,mj->mi", T[:, :3, :3], pc) + T[:, :3, 3]

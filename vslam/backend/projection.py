@@ -48,6 +48,14 @@ def project_stereo(T_world_cam: np.ndarray, pts_world: np.ndarray, camera) -> tu
     return pred[:, :2], pred[:, 2], pc[:, 2]
 
 
+def backproject_cam(meas: np.ndarray, fx: float, fy: float, cx: float, cy: float, baseline: float) -> np.ndarray:
+    """Inverse of ``project_cam``: (N,3) stereo measurements (uL, v, uR) with uL > uR -> (N,3) camera-frame
+    points (metres) that project exactly onto them."""
+    uL, v, uR = np.asarray(meas, dtype=np.float64).reshape(-1, 3).T
+    z = fx * baseline / (uL - uR)
+    return np.stack([(uL - cx) * z / fx, (v - cy) * z / fy, z], axis=1)
+
+
 def measurement_matrix(uv: np.ndarray, ur: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(N,2) uv, (N,) ur -> (N,3) measurement rows (uL, v, uR with 0 for mono) and (N,) bool stereo mask."""
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
