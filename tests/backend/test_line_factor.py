@@ -232,3 +232,34 @@ def test_window_factor_on_body_poses_is_the_camera_factor_carried_through_T_body
     num = _numeric_pose_gradient(f_body, vb, len(poses))
     assert np.abs(grad).max() > 1.0
     assert np.abs(grad - num).max() <= 1e-3 * np.abs(grad).max(), np.abs(grad - num).max()
+
+
+def test_window_factor_linearises_an_accepted_point_without_solving_its_lines_again(monkeypatch):
+    """LM linearises where error() was just evaluated: the inner line solve there is reused (one solve, not
+    two), and the linear factor is the one a window that never saw that error() call gives, bit for bit."""
+    from vslam.backend.line_window import LineWindow
+
+    rng = np.random.default_rng(7)
+    poses, _, lp = _line_scene(rng, n_lines=8)
+    segs = lp.obs_seg + rng.normal(0, 0.5, lp.obs_seg.shape)
+    args = (np.array([lp.lines[j] for j in sorted(lp.lines)]), lp.obs_line, lp.obs_kf, segs,
+            [X(k) for k in range(len(poses))], K_L, 1.0, 1.345)
+    v0, v1 = gtsam.Values(), gtsam.Values()
+    for k, T in enumerate(poses):
+        v0.insert(X(k), gtsam.Pose3(S.perturb_pose(rng, T, 0.005, 0.2)))
+        v1.insert(X(k), gtsam.Pose3(S.perturb_pose(rng, T, 0.005, 0.2)))
+    wa, wb = LineWindow(*args), LineWindow(*args)
+    fa, fb = wa.factor(), wb.factor()
+    for f in (fa, fb):  # prime and anchor both at v0
+        f.error(v0)
+        f.linearize(v0)
+    solves = []
+    real = LineWindow.refine_lines
+    monkeypatch.setattr(LineWindow, "refine_lines", lambda self, *a, **k: solves.append(self) or real(self, *a, **k))
+    fa.error(v1)  # LM's trial point ...
+    Aa, ba_ = fa.linearize(v1).jacobian()  # ... accepted and linearised: no second solve
+    assert solves == [wa]
+    Ab, bb = fb.linearize(v1).jacobian()  # the same point without the error() call first
+    assert np.array_equal(Aa, Ab) and np.array_equal(ba_, bb)
+    fa.error(v0)  # the anchor moved at the linearisation: a new point is solved again
+    assert solves == [wa, wb, wa]
