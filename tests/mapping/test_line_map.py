@@ -74,3 +74,34 @@ def test_follow_moves_each_line_with_its_first_keyframe_and_transform_moves_all(
     ls.transform(T, s)
     for lid, ml in ls.lmap.lines.items():
         np.testing.assert_allclose(ml.ends, (s * before[lid]) @ T[:3, :3].T + T[:3, 3], atol=1e-12)
+
+
+def test_depth_fit_recovers_a_line_on_a_surface_and_rejects_one_across_a_depth_edge():
+    """RGB-D line creation, batched over segments: a segment drawn on a tilted plane gives that 3-D line
+    (in the world, under the keyframe pose); one crossing from the plane to a far background, and one with
+    no depth, give none."""
+    from vslam.data.types import PinholeCamera
+    from vslam.features.lines import LineConfig
+
+    cam = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
+    ls = LineSlam.__new__(LineSlam)
+    ls.cam, ls.cfg = cam, LineConfig()
+    # plane z = 3 + 0.5 x (camera frame) on the left half, background at 8 m on the right; no depth at the top
+    v, u = np.mgrid[0:480, 0:640].astype(np.float64)
+    xn = (u - 320.0) / 500.0
+    depth = np.where(u < 400, 3.0 / (1.0 - 0.5 * xn), 8.0).astype(np.float32)
+    depth[:60] = np.nan
+    T = make_T(so3_exp(np.array([0.1, -0.2, 0.05])), np.array([1.0, 2.0, 0.5]))
+
+    def seg_of(p, q):
+        return np.array([*(K @ p)[:2] / p[2], *(K @ q)[:2] / q[2]])
+
+    on = [np.array([x, y, 3.0 + 0.5 * x]) for x, y in ((-0.6, -0.3), (0.1, 0.4))]  # both ends on the plane
+    segs = np.stack([seg_of(*on), np.array([200.0, 300.0, 600.0, 300.0]), np.array([100.0, 20.0, 300.0, 40.0])])
+    ok, L, ends = ls.fit_from_depth(segs, segs, depth, T)
+    assert ok.tolist() == [True, False, False]
+    truth = pl.transform(pl.normalize(pl.from_points(on[0], on[1])), T)
+    s = np.sign(truth[3:] @ L[0][3:])
+    np.testing.assert_allclose(s * pl.normalize(L[0]), truth, atol=2e-2)  # depth sampled at rounded pixels
+    np.testing.assert_allclose(ends[0], np.stack(on) @ T[:3, :3].T + T[:3, 3], atol=3e-2)
+    assert np.isnan(L[1:]).all()

@@ -195,51 +195,64 @@ class LineSlam:
             return 0
         free = np.flatnonzero(self.lmap.kf_ids[kf_id] < 0)
         free = free[np.argsort(-lf.length[free], kind="stable")]
+        ok, L, ends = self.fit_from_depth(lf.raw[free], lf.segs[free], depth_map, T_world_cam)
         n = 0
-        for i in free:
-            fit = self.fit_from_depth(lf.raw[i], lf.segs[i], depth_map, T_world_cam)
-            if fit is None:
-                continue
-            self.lmap.add_line(fit[0], fit[1], kf_id, int(i))
+        for j in np.flatnonzero(ok)[: self.cfg.max_new_lines].tolist():  # the longest segments that fit
+            self.lmap.add_line(L[j], ends[j], kf_id, int(free[j]))
             n += 1
-            if n >= self.cfg.max_new_lines:
-                break
         return n
 
     def fit_from_depth(self, raw: np.ndarray, seg: np.ndarray, depth_map: np.ndarray, T_world_cam: np.ndarray
-                       ) -> tuple[np.ndarray, np.ndarray] | None:
-        """(L (6,), ends (2,3)) of a segment from depth sampled along it, or None when the samples do not lie
-        on one 3-D line (a depth edge, missing depth)."""
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """3-D lines of segments (S,4) (``raw`` pixels to sample depth, ``seg`` ideal ones) from depth sampled
+        along them -> (ok (S,), L (S,6), ends (S,2,3)); not ok where the samples do not lie on one 3-D line (a
+        depth edge, missing depth). Batched over the segments (one keyframe's ~100 cost ~0.6 ms each in a loop)."""
+        raw = np.asarray(raw, dtype=np.float64).reshape(-1, 4)
+        seg = np.asarray(seg, dtype=np.float64).reshape(-1, 4)
+        S = len(raw)
+        bad = np.zeros(S, bool), np.full((S, 6), np.nan), np.full((S, 2, 3), np.nan)
+        if S == 0:
+            return bad
         h, w = depth_map.shape[:2]
         t = np.linspace(0.05, 0.95, 11)
-        d = raw[2:] - raw[:2]
-        nrm = np.array([-d[1], d[0]]) / max(np.hypot(*d), 1e-9)
+        d = raw[:, 2:] - raw[:, :2]
+        nrm = np.stack([-d[:, 1], d[:, 0]], axis=1) / np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)[:, None]
         zs = []
         for off in (-2.0, 2.0):
-            p = raw[:2] + t[:, None] * d + off * nrm
+            p = raw[:, None, :2] + t[None, :, None] * d[:, None, :] + off * nrm[:, None, :]  # (S,11,2)
             ix = np.clip(np.round(p).astype(np.int64), 0, [w - 1, h - 1])
-            zs.append(depth_map[ix[:, 1], ix[:, 0]].astype(np.float64))
+            zs.append(depth_map[ix[..., 1], ix[..., 0]].astype(np.float64))
         # the nearer side; NaN only where both are missing. Their mean on one surface halves the creation error
         # (corridor lines 1.8 -> 0.9 cm off their wall) but measured worse: corridor ATE over seeds 0-3
         # 0.0044 / 0.0047 / 0.0067 / 0.0060 m against 0.0040 / 0.0045 / 0.0059 / 0.0061 m (2026-12-02)
         z = np.fmin(zs[0], zs[1])
-        ok = np.isfinite(z) & (z > 0.1) & (z < 10.0)
-        if self.cfg.surface_only:  # both sides at one depth: a texture / crease edge, not an occluding contour
-            ok &= np.abs(zs[0] - zs[1]) <= self.cfg.depth_fit_m + 0.02 * z
-        if ok.sum() < self.cfg.min_depth_samples:
-            return None
-        uv = seg[:2] + t[:, None] * (seg[2:] - seg[:2])
-        P = self.cam.backproject(uv[ok], z[ok])
-        c = P.mean(axis=0)
-        _, sv, vt = np.linalg.svd(P - c)
-        u = vt[0]
-        dev = np.linalg.norm((P - c) - np.outer((P - c) @ u, u), axis=1)
-        if dev.max() > self.cfg.depth_fit_m + 0.01 * float(z[ok].mean()):
-            return None
-        Lc = np.concatenate([np.cross(c, u), u])
-        L = pl.transform(Lc, T_world_cam)
-        a, b = pl.clip_to_segment(L[None], seg[None], T_world_cam, self.cam.K)
-        return L, np.stack([a[0], b[0]])
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(z) & (z > 0.1) & (z < 10.0)
+            if self.cfg.surface_only:  # both sides at one depth: a texture / crease edge, not an occluding contour
+                ok &= np.abs(zs[0] - zs[1]) <= self.cfg.depth_fit_m + 0.02 * z
+        cnt = ok.sum(axis=1)
+        fit = cnt >= max(self.cfg.min_depth_samples, 2)
+        if not fit.any():
+            return bad
+        ok, z, sg, cnt = ok[fit], np.where(ok[fit], z[fit], 0.0), seg[fit], cnt[fit]
+        uv = sg[:, None, :2] + t[None, :, None] * (sg[:, None, 2:] - sg[:, None, :2])
+        P = self.cam.backproject(uv.reshape(-1, 2), z.reshape(-1)).reshape(len(sg), len(t), 3)
+        wgt = ok.astype(np.float64)[:, :, None]
+        c = (P * wgt).sum(axis=1) / cnt[:, None]
+        Q = (P - c[:, None, :]) * wgt
+        u = np.linalg.eigh(np.einsum("sni,snj->sij", Q, Q))[1][:, :, -1]  # principal direction (SVD's first)
+        dev = np.linalg.norm(Q - np.einsum("sn,si->sni", np.einsum("sni,si->sn", Q, u), u), axis=2)
+        zmean = (z * ok).sum(axis=1) / cnt
+        good = dev.max(axis=1) <= self.cfg.depth_fit_m + 0.01 * zmean
+        Lc = np.concatenate([np.cross(c, u), u], axis=1)
+        Lw = pl.transform(Lc, T_world_cam)
+        ea, eb = pl.clip_to_segment(Lw, sg, T_world_cam, self.cam.K)
+        out_ok, out_L, out_e = bad
+        idx = np.flatnonzero(fit)[good]
+        out_ok[idx] = True
+        out_L[idx] = Lw[good]
+        out_e[idx] = np.stack([ea, eb], axis=1)[good]
+        return out_ok, out_L, out_e
 
     def triangulate(self, kf, neighbors: list[int]) -> int:
         """New lines from the keyframe's unmatched segments and each neighbour's (most covisible first), see
