@@ -64,6 +64,16 @@ def test_covisibility_counts_and_local_map():
     assert m.covisible_keyframes(0, min_shared=1) == [1, 2]
     kfs, pts = m.local_map(2, min_shared=5)
     assert kfs == [2, 1, 0] and len(pts) == 20  # ties (10 and 10): newest first
+    # remembered while the map is unchanged; a caller cannot change the remembered copy
+    kfs.append(99)
+    kfs2, pts2 = m.local_map(2, min_shared=5)
+    assert kfs2 == [2, 1, 0] and pts2 is pts and not pts2.flags.writeable
+    assert m.local_map(2, min_shared=11)[0] == [2]  # other arguments: counted again
+    for i in range(10, 20):  # kf2 now shares 20 with kf0 and kf1: any map change counts again
+        m.add_observation(int(pts[i]), 2, i)
+    assert m.local_map(2, min_shared=11)[0] == [2, 1, 0]
+    m.remove_point(int(pts[0]))
+    assert len(m.local_map(2, min_shared=11)[1]) == 19
 
 
 def test_merge_points_moves_observations():

@@ -73,6 +73,7 @@ class Map:
         # Bumped by every change of observations, point positions or descriptors (writers outside this class
         # call ``touch``): what tracking derived from the map stays valid while it is unchanged.
         self.revision = 0
+        self._local_memo: tuple | None = None  # (revision, arguments, result) of the last ``local_map``
 
     def touch(self) -> None:
         """Mark the map changed (for code that moves points or keyframes directly)."""
@@ -164,11 +165,20 @@ class Map:
         return ids if limit is None else ids[:limit]
 
     def local_map(self, kf_id: int, max_keyframes: int = 20, min_shared: int = 15) -> tuple[list[int], np.ndarray]:
-        """(keyframe ids: ``kf_id`` + its most covisible, point ids they observe (sorted, unique))."""
+        """(keyframe ids: ``kf_id`` + its most covisible, point ids they observe (sorted, unique, read-only)).
+
+        Remembered while the map is unchanged (``revision``): point and line tracking ask for the same local
+        map on every frame between keyframes (~1 ms of covisibility counting each)."""
+        key = (self.revision, kf_id, max_keyframes, min_shared)
+        if self._local_memo is not None and self._local_memo[0] == key:
+            return list(self._local_memo[1]), self._local_memo[2]
         kfs = [kf_id] + self.covisible_keyframes(kf_id, min_shared, max_keyframes - 1)
         pids = [self.keyframes[k].point_ids for k in kfs]
         allp = np.unique(np.concatenate(pids)) if pids else np.zeros(0, np.int64)
-        return kfs, allp[allp >= 0]
+        allp = allp[allp >= 0]
+        allp.flags.writeable = False
+        self._local_memo = (key, kfs, allp)
+        return list(kfs), allp
 
     def points_xyz(self, ids: np.ndarray) -> np.ndarray:
         """(len(ids),3) world positions."""
