@@ -220,7 +220,7 @@ def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: Backe
     graph = _graph(facs + holds + line_facs)
     t1 = time.perf_counter()
 
-    est, iters = _levenberg_marquardt(graph, values, cfg.max_iterations, schur=True)
+    est, iters, initial_error = _levenberg_marquardt(graph, values, cfg.max_iterations, schur=True)
     t2 = time.perf_counter()
 
     keep = win.chi2(*_estimate_arrays(est, win, used_k, used_p), camera)[idx] <= win.thr[idx]
@@ -229,7 +229,7 @@ def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: Backe
     if cfg.refine_iterations > 0 and keep.any():  # ORB-SLAM2: drop the outlier factors, optimise again
         start = _without(est, _orphans(win, idx[keep], used_k, used_p, anchors))
         graph2 = _graph(list(itertools.compress(facs, keep.tolist())) + holds + factors_within(line_facs, start))
-        est2, more = _levenberg_marquardt(graph2, start, cfg.refine_iterations, schur=True)
+        est2, more, _ = _levenberg_marquardt(graph2, start, cfg.refine_iterations, schur=True)
         est = gtsam.Values(est)
         est.update(est2)  # a variable that lost all its factors keeps its first-round value
         iters += more
@@ -247,7 +247,7 @@ def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: Backe
     for i in np.union1d(used_p, win.ip[closed]).tolist():
         result.points[int(win.pt_ids[i])] = P[i]
     result.iterations = iters
-    result.initial_error = float(graph.error(values))
+    result.initial_error = initial_error  # LM evaluated it first thing (same graph and values)
     result.final_error = float(graph.error(est))
     if problem.lines is not None:
         result.lines = line_estimates(est, line_ids)
@@ -283,7 +283,8 @@ def optimize_pose(
 
 
 def _levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, iterations: int, schur: bool = False):
-    """-> (estimate, LM iterations run). ``schur``: eliminate every landmark before the poses, sequentially.
+    """-> (estimate, LM iterations run, graph error at ``values``). ``schur``: eliminate every landmark before the
+    poses, sequentially.
 
     That is the Schur complement of BA solvers: each point (or line) goes first, leaving only the small dense
     system of the window's poses. On 33 local BA windows of TUM teddy (~4200 observations, ~2000 points, ~18
@@ -297,8 +298,9 @@ def _levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values
         params.setOrdering(order)
         params.setLinearSolverType("SEQUENTIAL_CHOLESKY")
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    initial_error = float(opt.error())  # computed by the constructor: no second pass over the graph
     est = opt.optimize()
-    return est, int(opt.iterations())
+    return est, int(opt.iterations()), initial_error
 
 
 def _single_view(win: DenseWindow, valid: np.ndarray, min_tied: int) -> np.ndarray:

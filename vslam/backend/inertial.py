@@ -163,7 +163,7 @@ def visual_inertial_bundle_adjustment(problem: BAProblem, chain: ImuChain, camer
     graph = _graph(facs + other + line_facs)
     t1 = time.perf_counter()
 
-    est, _ = _levenberg_marquardt(graph, values, icfg.max_iterations)
+    est, _, _ = _levenberg_marquardt(graph, values, icfg.max_iterations)
     Twc, P = _arrays(est, win, T_bc)
     keep = win.chi2(Twc, P, camera)[idx] <= win.thr[idx]
     if icfg.refine_iterations > 0 and keep.any() and not keep.all():
@@ -173,11 +173,11 @@ def visual_inertial_bundle_adjustment(problem: BAProblem, chain: ImuChain, camer
             if j not in kept_pts:  # no factor left: keeps its first-round value
                 start.erase(L(j))
         graph = _graph([f for f, k in zip(facs, keep.tolist()) if k] + other + factors_within(line_facs, start))
-        est2, _ = _levenberg_marquardt(graph, start, icfg.refine_iterations)
+        est2, _, _ = _levenberg_marquardt(graph, start, icfg.refine_iterations)
         est = gtsam.Values(est)
         est.update(est2)
     elif icfg.refine_iterations > 0:
-        est, _ = _levenberg_marquardt(graph, est, icfg.refine_iterations)
+        est, _, _ = _levenberg_marquardt(graph, est, icfg.refine_iterations)
     t2 = time.perf_counter()
 
     Twc, P = _arrays(est, win, T_bc)
