@@ -165,3 +165,31 @@ def test_local_map_is_gathered_again_after_any_map_change():
     np.testing.assert_allclose(tr.local_points(ref).xyz[0], a.xyz[0], atol=1e-12)
     st.map.remove_point(pid)
     assert pid not in tr.local_points(ref).ids
+
+
+def test_first_round_matches_the_previous_frames_points_and_falls_back_to_the_local_map(monkeypatch):
+    """The motion-model round searches only the points the previous frame tracked (ORB-SLAM's
+    TrackWithMotionModel); too few of them, or a frame after a loss, and it searches the whole local map."""
+    from vslam.tracking.tracker import Tracker
+
+    seq = _seq("rgbd", 12)
+    frames = list(seq)
+    st, _, tracked = _run(seq, "rgbd", frames[:11])
+    assert tracked.all() and st._last_ids is not None and len(st._last_ids) >= st.cfg.tracking.min_matches
+    searched: list[int] = []
+    real = Tracker.search_local
+    monkeypatch.setattr(Tracker, "search_local", lambda self, T, local, *a: searched.append(len(local.ids)) or real(self, T, local, *a))
+    n_local = len(st.tracker.local_points(st.ref_kf).ids)
+    last = st._last_ids
+    assert len(last) < n_local
+    front = st.frontend(frames[11])
+    feats = front.feats
+    ur = np.full(len(feats), np.nan)  # monocular rows suffice here
+    res = st.tracker.track(feats, ur, st.T_world_cam, st.ref_kf, after_loss=False, last_ids=last)
+    assert res.ok and searched == [len(last), n_local]  # round one on the last frame's points, round two: local map
+    searched.clear()
+    st.tracker.track(feats, ur, st.T_world_cam, st.ref_kf, after_loss=False, last_ids=last[:5])  # too few
+    assert searched[0] == n_local
+    searched.clear()
+    st.tracker.track(feats, ur, st.T_world_cam, st.ref_kf, after_loss=True, last_ids=last)  # after a loss
+    assert searched[0] == n_local

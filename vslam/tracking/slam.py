@@ -133,6 +133,7 @@ class SlamTracker:
         self.ref_kf: int | None = None
         self.last_kf_frame = 0
         self._prev_tracked = False
+        self._last_ids: np.ndarray | None = None  # map points tracked in the last tracked frame (first round)
         self._n_frames = 0
         self._pre_init: list[tuple[int, Features]] = []  # monocular: (frame index, keypoints) before the map
         # (keyframe, its image, frame count) whose local BA the worker is solving and whose loop step waits for it
@@ -221,7 +222,8 @@ class SlamTracker:
             T_imu = self.vio.predict(frame.timestamp) if self.vio is not None else None
             if T_imu is not None:  # once initialised, IMU propagation replaces constant velocity
                 T_pred = T_imu
-            res = self.tracker.track(feats, ur, T_pred, self.ref_kf, after_loss=not self._prev_tracked)
+            res = self.tracker.track(feats, ur, T_pred, self.ref_kf, after_loss=not self._prev_tracked,
+                                     last_ids=self._last_ids)
             if not res.ok and self.loop is not None and self.cfg.loop.relocalise:  # place recognition over all keyframes
                 res = self.loop.relocalise(self.tracker, feats, ur, frame.image) or res
             if res.ok and self.lines is not None:  # issue 6: the pose on points + matched map lines
@@ -234,6 +236,7 @@ class SlamTracker:
                     self.velocity = inv_T(self.T_world_cam) @ res.T_world_cam
                 self.T_world_cam = res.T_world_cam
                 self.ref_kf = self.tracker.best_reference(res.point_ids, self.ref_kf)
+                self._last_ids = res.point_ids[res.point_ids >= 0]
             else:
                 self.T_world_cam = T_pred
                 log.debug("frame %d not tracked; pose predicted", frame.index)

@@ -38,6 +38,10 @@ class TrackingConfig:
     radius_px: float = 15.0  # projection search radius from the motion prediction, pixels
     radius_lost_px: float = 40.0  # ... right after frames that were not tracked
     radius_refine_px: float = 4.0  # second round, from the refined pose
+    # First round (the motion-model PnP) against the previous frame's tracked points only, as ORB-SLAM's
+    # TrackWithMotionModel; the whole local map (as in round two) when they give fewer than min_matches or
+    # the previous frame was not tracked. False: the whole local map always.
+    first_round_last_frame: bool = True
     max_hamming: int = 64  # bits (of 256)
     ratio: float = 0.9  # best / second best descriptor distance within the radius
     min_matches: int = 30  # fewer projection matches -> descriptor matching against keyframes
@@ -212,12 +216,25 @@ class Tracker:
         return res
 
     # -- strategies -----------------------------------------------------------
-    def track_projection(self, feats: Features, ur: np.ndarray, T_pred: np.ndarray, ref_kf: int, radius: float, tree: cKDTree) -> TrackResult | None:
+    def track_projection(self, feats: Features, ur: np.ndarray, T_pred: np.ndarray, ref_kf: int, radius: float, tree: cKDTree,
+                         last_ids: np.ndarray | None = None) -> TrackResult | None:
+        """Motion-model round (``last_ids``: the previous frame's tracked points, else / if too few: the local
+        map) + LO-RANSAC PnP, then ``_finish_local``."""
         local = self.local_points(ref_kf)
-        sel, mk, _ = self.search_local(T_pred, local, feats, tree, radius)
+        sel = np.zeros(0, np.int64)
+        if last_ids is not None and len(last_ids) >= self.cfg.min_matches:
+            pts = self.map.points
+            ids = np.asarray([p for p in last_ids.tolist() if p in pts], np.int64)  # loop fusion may have merged some
+            if len(ids) >= self.cfg.min_matches:
+                last = LocalPoints(ids, self.map.points_xyz(ids), self.map.descriptors(ids))
+                sel, mk, _ = self.search_local(T_pred, last, feats, tree, radius)
+                X = last.xyz[sel]
+        if len(sel) < self.cfg.min_matches:
+            sel, mk, _ = self.search_local(T_pred, local, feats, tree, radius)
+            X = local.xyz[sel]
         if len(sel) < self.cfg.min_matches:
             return None
-        T, inl = self.pnp(feats.uv[mk], local.xyz[sel])
+        T, inl = self.pnp(feats.uv[mk], X)
         if T is None:  # the LO-RANSAC pose is already refined on its inliers; the back end refines in round two
             return None
         return self._finish_local(T, feats, ur, ref_kf, tree, "projection", local)  # the map has not changed since
@@ -240,14 +257,17 @@ class Tracker:
             return None
         return self._finish_local(T, feats, ur, kf_id, tree, method)
 
-    def track(self, feats: Features, ur: np.ndarray, T_pred: np.ndarray, ref_kf: int, after_loss: bool) -> TrackResult:
-        """Try projection, then the reference keyframe, then (after a loss) the newest keyframes."""
+    def track(self, feats: Features, ur: np.ndarray, T_pred: np.ndarray, ref_kf: int, after_loss: bool,
+              last_ids: np.ndarray | None = None) -> TrackResult:
+        """Try projection, then the reference keyframe, then (after a loss) the newest keyframes. ``last_ids``:
+        map points tracked in the previous frame (``TrackingConfig.first_round_last_frame``)."""
         fail = TrackResult(T_pred, False, np.full(len(feats), -1, np.int64))
         if len(feats) < self.cfg.min_inliers:
             return fail
         tree = cKDTree(feats.uv)
         radius = self.cfg.radius_lost_px if after_loss else self.cfg.radius_px
-        res = self.track_projection(feats, ur, T_pred, ref_kf, radius, tree)
+        use_last = self.cfg.first_round_last_frame and not after_loss
+        res = self.track_projection(feats, ur, T_pred, ref_kf, radius, tree, last_ids if use_last else None)
         if res is None or not res.ok:
             res = self.track_keyframe(feats, ur, ref_kf, tree)
         if (res is None or not res.ok) and after_loss:
