@@ -168,13 +168,17 @@ def test_local_map_is_gathered_again_after_any_map_change():
 
 
 def test_first_round_matches_the_previous_frames_points_and_falls_back_to_the_local_map(monkeypatch):
-    """The motion-model round searches only the points the previous frame tracked (ORB-SLAM's
-    TrackWithMotionModel); too few of them, or a frame after a loss, and it searches the whole local map."""
+    """``first_round_last_frame`` (off by default): the motion-model round searches only the points the previous
+    frame tracked (ORB-SLAM's TrackWithMotionModel); too few of them, or a frame after a loss, and it searches
+    the whole local map, as it always does by default."""
+    from dataclasses import replace
+
     from vslam.tracking.tracker import Tracker
 
     seq = _seq("rgbd", 12)
     frames = list(seq)
-    st, _, tracked = _run(seq, "rgbd", frames[:11])
+    cfg = SlamConfig()
+    st, _, tracked = _run(seq, "rgbd", frames[:11], replace(cfg, tracking=replace(cfg.tracking, first_round_last_frame=True)))
     assert tracked.all() and st._last_ids is not None and len(st._last_ids) >= st.cfg.tracking.min_matches
     searched: list[int] = []
     real = Tracker.search_local
@@ -192,4 +196,8 @@ def test_first_round_matches_the_previous_frames_points_and_falls_back_to_the_lo
     assert searched[0] == n_local
     searched.clear()
     st.tracker.track(feats, ur, st.T_world_cam, st.ref_kf, after_loss=True, last_ids=last)  # after a loss
+    assert searched[0] == n_local
+    searched.clear()
+    off = Tracker(st.map, st.tracker.cam, st.tracker.stereo_cam, SlamConfig().tracking, st.tracker.backend)
+    off.track(feats, ur, st.T_world_cam, st.ref_kf, after_loss=False, last_ids=last)  # the default: local map
     assert searched[0] == n_local
