@@ -40,13 +40,13 @@ class TrackingConfig:
     radius_refine_px: float = 4.0  # second round, from the refined pose
     # First round (the motion-model PnP) against the previous frame's tracked points only, as ORB-SLAM's
     # TrackWithMotionModel (the whole local map when they give fewer than min_matches, or after a loss), instead
-    # of the whole local map. Off: faster (TUM teddy pose stage 23.4 -> 18.6 ms/frame) and as good or better on
+    # of the whole local map. On, it is faster (TUM teddy pose stage 23.4 -> 18.6 ms/frame) and as good or better on
     # static scenes (all SLAM bench rows, 2026-12-02: KITTI 07 mono 0.292 -> 0.269 m, stereo street 0.032 ->
     # 0.025 m, corridor 0.0051 -> 0.0047 m; worse: RGB-D street 0.017 -> 0.020 m, 2-loop lighting RGB-D 0.029 ->
     # 0.037 m), but points on a mover the filter missed were inliers of the previous frame, and from them alone
     # the PnP follows the mover: synthetic room with unfiltered movers 0.0105 -> 0.074 m, TUM teddy with walkers
     # and the detector's masks 0.0112 -> 0.0214 m (the retrained detector: 0.0093 -> 0.0457 m); the whole local
-    # map outvotes them.
+    # map outvotes them. Hence off by default.
     first_round_last_frame: bool = False
     max_hamming: int = 64  # bits (of 256)
     ratio: float = 0.9  # best / second best descriptor distance within the radius
