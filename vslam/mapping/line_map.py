@@ -210,9 +210,9 @@ class LineSlam:
         raw = np.asarray(raw, dtype=np.float64).reshape(-1, 4)
         seg = np.asarray(seg, dtype=np.float64).reshape(-1, 4)
         S = len(raw)
-        bad = np.zeros(S, bool), np.full((S, 6), np.nan), np.full((S, 2, 3), np.nan)
+        out_ok, out_L, out_e = np.zeros(S, bool), np.full((S, 6), np.nan), np.full((S, 2, 3), np.nan)
         if S == 0:
-            return bad
+            return out_ok, out_L, out_e
         h, w = depth_map.shape[:2]
         t = np.linspace(0.05, 0.95, 11)
         d = raw[:, 2:] - raw[:, :2]
@@ -233,7 +233,7 @@ class LineSlam:
         cnt = ok.sum(axis=1)
         fit = cnt >= max(self.cfg.min_depth_samples, 2)
         if not fit.any():
-            return bad
+            return out_ok, out_L, out_e
         ok, z, sg, cnt = ok[fit], np.where(ok[fit], z[fit], 0.0), seg[fit], cnt[fit]
         uv = sg[:, None, :2] + t[None, :, None] * (sg[:, None, 2:] - sg[:, None, :2])
         P = self.cam.backproject(uv.reshape(-1, 2), z.reshape(-1)).reshape(len(sg), len(t), 3)
@@ -247,7 +247,6 @@ class LineSlam:
         Lc = np.concatenate([np.cross(c, u), u], axis=1)
         Lw = pl.transform(Lc, T_world_cam)
         ea, eb = pl.clip_to_segment(Lw, sg, T_world_cam, self.cam.K)
-        out_ok, out_L, out_e = bad
         idx = np.flatnonzero(fit)[good]
         out_ok[idx] = True
         out_L[idx] = Lw[good]

@@ -179,7 +179,7 @@ class LocalMapper:
         Ids no longer in the map are skipped (loop fusion passes one list to several keyframes, merging as it goes)."""
         pids = np.asarray(pids, np.int64)
         pids = pids[~np.isin(pids, target.point_ids)]  # not already seen by the target
-        pids = pids[np.fromiter((p in self.map.points for p in pids.tolist()), bool, len(pids))]
+        pids = self.map.existing(pids)
         if len(pids) == 0 or len(target.features) == 0:
             return 0
         uv, z, vis = project(target.T_world_cam, self.map.points_xyz(pids), self.cam)

@@ -180,6 +180,11 @@ class Map:
         self._local_memo = (key, kfs, allp)
         return list(kfs), allp
 
+    def existing(self, ids: np.ndarray) -> np.ndarray:
+        """The ids of ``ids`` still in the map, in order (a merge or a cull may have removed some since)."""
+        ids = np.asarray(ids, np.int64)
+        return ids[np.fromiter((i in self.points for i in ids.tolist()), bool, len(ids))]
+
     def points_xyz(self, ids: np.ndarray) -> np.ndarray:
         """(len(ids),3) world positions."""
         if len(ids) == 0:

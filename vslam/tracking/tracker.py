@@ -190,9 +190,12 @@ class Tracker:
         if self._local is not None and self._local[0] == key:
             return self._local[1]
         _, pids = self.map.local_map(ref_kf, self.cfg.local_keyframes)
-        local = LocalPoints(pids, self.map.points_xyz(pids), self.map.descriptors(pids))
+        local = self._gather(pids)
         self._local = (key, local)
         return local
+
+    def _gather(self, ids: np.ndarray) -> LocalPoints:
+        return LocalPoints(ids, self.map.points_xyz(ids), self.map.descriptors(ids))
 
     def _result(self, T: np.ndarray, pids: np.ndarray, kps: np.ndarray, inl: np.ndarray, n: int, method: str, n_matches: int) -> TrackResult:
         point_ids = np.full(n, -1, np.int64)
@@ -229,10 +232,9 @@ class Tracker:
         local = self.local_points(ref_kf)
         sel = np.zeros(0, np.int64)
         if last_ids is not None and len(last_ids) >= self.cfg.min_matches:
-            pts = self.map.points
-            ids = np.asarray([p for p in last_ids.tolist() if p in pts], np.int64)  # loop fusion may have merged some
+            ids = self.map.existing(last_ids)  # loop fusion may have merged some
             if len(ids) >= self.cfg.min_matches:
-                last = LocalPoints(ids, self.map.points_xyz(ids), self.map.descriptors(ids))
+                last = self._gather(ids)
                 sel, mk, _ = self.search_local(T_pred, last, feats, tree, radius)
                 X = last.xyz[sel]
         if len(sel) < self.cfg.min_matches:
