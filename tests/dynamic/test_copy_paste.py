@@ -57,6 +57,22 @@ def test_a_paste_hidden_by_a_later_one_is_dropped():
     assert len(s.boxes) == 1 and s.labels.tolist() == [0]
 
 
+def test_closeup_pastes_are_taller_than_the_frame_and_cut_by_it():
+    """closeup=1: every person is 1-2 image heights tall, so its box spans the frame's height (cut at the top, the
+    bottom or both); without close-ups no person is taller than 0.95 of the frame."""
+    bg = Sample(np.zeros((120, 160, 3), np.uint8), np.zeros((0, 4)), np.zeros(0, np.int64))
+    kept = 0
+    for seed in range(20):
+        s = paste(bg, [_cutout(60, 24)], label=0, rng=np.random.default_rng(seed), n=1, closeup=1.0)
+        for x1, y1, x2, y2 in s.boxes:
+            kept += 1
+            assert y2 - y1 >= 0.7 * 120 and (y1 <= 1 or y2 >= 119)
+    assert kept >= 15
+    for seed in range(20):
+        s = paste(bg, [_cutout(60, 24)], label=0, rng=np.random.default_rng(seed), n=1)
+        assert all(y2 - y1 <= 0.95 * 120 + 1 for _, y1, _, y2 in s.boxes)
+
+
 def test_crop_background_keeps_at_most_four_thirds():
     wide = np.zeros((370, 1226, 3), np.uint8)
     c = crop_background(wide, np.random.default_rng(0))

@@ -40,6 +40,8 @@ def test_in_mask_and_boxes_are_exact():
     x, y = f.raw[:, 0], f.raw[:, 1]
     np.testing.assert_array_equal(in_boxes(f.raw, box), (x >= 30) & (x <= 39) & (y >= 10) & (y <= 19))
     np.testing.assert_array_equal(in_boxes(f.raw, box, 2.0), (x >= 28) & (x <= 41) & (y >= 8) & (y <= 21))
+    # grow by 20 % of the 9 x 9 box on each side (1.8 px), plus 2 px
+    np.testing.assert_array_equal(in_boxes(f.raw, box, 2.0, 0.2), (x >= 26.2) & (x <= 42.8) & (y >= 6.2) & (y <= 22.8))
     assert not in_boxes(f.raw, np.zeros((0, 4))).any()
     # keypoints outside the image are not masked (no wrap-around indexing)
     assert not in_mask(np.array([[-1.0, 5.0], [64.2, 5.0], [5.0, 48.0]]), np.ones((48, 64), bool)).any()

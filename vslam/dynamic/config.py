@@ -61,6 +61,9 @@ class DynamicConfig:
     # one frame was found in one before; boxes move little in a fraction of a second). Same validation
     # composite at score 0.2: ATE 0.0056 / 0.0075 / 0.0050 m with 0 / 0.15 / 0.27 s
     box_memory_s: float = 0.27
+    # detector boxes also grow by this fraction of their size on each side: a small model's box edges are off by
+    # ~ a stride of its coarsest level, and a limb or a foot just outside the box leaks keypoints
+    box_grow: float = 0.0
     weights: str = ""  # detector checkpoint (source=detector); "" = the shipped models/detector_esea.pt
     img_size: int = 0  # detector input: the image's longer side resized to this; 0 = the size it was trained at
     geometric: GeometricConfig = field(default_factory=GeometricConfig)
@@ -70,6 +73,8 @@ class DynamicConfig:
             raise ConfigError(f"slam.dynamic.source must be detector, gt_mask or none, got {self.source!r}")
         if self.dilation_px < 0:
             raise ConfigError("slam.dynamic.dilation_px must be >= 0")
+        if not 0 <= self.box_grow <= 1:
+            raise ConfigError(f"slam.dynamic.box_grow must be in [0, 1], got {self.box_grow}")
         if self.box_memory_s < 0:
             raise ConfigError("slam.dynamic.box_memory_s must be >= 0")
         if self.img_size < 0 or self.img_size % 32:

@@ -8,9 +8,11 @@ COCO128 train images; the people come from COCO128 polygons, never from the imag
 the dynamic benchmark (``composite.benchmark_stems``), so the benchmark's walkers stay unseen.
 
 A pasted person may be partly outside the canvas or hidden by a later paste; its box is the box of its visible
-pixels, and it is dropped when less than ``min_visible`` of it is left. Sizes follow the benchmark's range (a
-person 0.15-0.95 of the image height); brightness follows the background (gain 0.5-1.3) and the alpha edge is
-feathered by a 3x3 blur, so the pasted outline is not a shortcut.
+pixels, and it is dropped when less than ``min_visible`` of it is left. Sizes: a person 0.15-0.95 of the image
+height, and with probability ``closeup`` 1-2 image heights, cut by the frame (someone walking past the camera:
+the dynamic benchmark's walkers come that close, and a detector that never saw a torso without head and feet
+misses them); brightness follows the background (gain 0.5-1.3) and the alpha edge is feathered by a 3x3 blur,
+so the pasted outline is not a shortcut.
 """
 
 from __future__ import annotations
@@ -52,7 +54,8 @@ def crop_background(img: np.ndarray, rng: np.random.Generator, aspect: float = 4
 
 
 def paste(sample: Sample, cutouts: list[np.ndarray], label: int, rng: np.random.Generator, n: int,
-          height: tuple[float, float] = (0.15, 0.95), min_visible: float = 0.3) -> Sample:
+          height: tuple[float, float] = (0.15, 0.95), min_visible: float = 0.3, closeup: float = 0.0,
+          closeup_height: tuple[float, float] = (1.0, 2.0)) -> Sample:
     """``sample`` with ``n`` random cutouts (BGRA) pasted as class ``label``. Existing boxes are kept (a paste
     over a labelled object only hides part of it; a fully hidden one would still be labelled, which at our
     paste sizes is rare and matches COCO's own occluded labels)."""
@@ -63,7 +66,8 @@ def paste(sample: Sample, cutouts: list[np.ndarray], label: int, rng: np.random.
     for k in range(n):
         cut = cutouts[int(rng.integers(len(cutouts)))]
         ch, cw = cut.shape[:2]
-        s = min(rng.uniform(*height) * H / ch, W / cw)  # a wide cutout (a lying person) fits the width
+        near = closeup > 0 and rng.random() < closeup  # no extra draw at 0: earlier recipes stay reproducible
+        s = min(rng.uniform(*(closeup_height if near else height)) * H / ch, (2.0 if near else 1.0) * W / cw)
         nw, nh = max(2, round(cw * s)), max(2, round(ch * s))
         cut = cv2.resize(cut, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
         if rng.random() < 0.5:

@@ -52,7 +52,7 @@ class DynamicFilter:
             self._recent.append((frame.timestamp, det.boxes[sel]))
             while frame.timestamp - self._recent[0][0] > c.box_memory_s + 1e-6:
                 self._recent.popleft()
-            return in_boxes(feats.raw, np.concatenate([b for _, b in self._recent]), c.dilation_px)
+            return in_boxes(feats.raw, np.concatenate([b for _, b in self._recent]), c.dilation_px, c.box_grow)
         return np.zeros(len(feats), bool)
 
     def keep(self, frame: Frame, feats: Features) -> np.ndarray:

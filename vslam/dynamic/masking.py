@@ -25,12 +25,15 @@ def in_mask(raw_uv: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return out
 
 
-def in_boxes(raw_uv: np.ndarray, boxes: np.ndarray, pad: float = 0.0) -> np.ndarray:
-    """(N,2) pixels, (K,4) boxes x1,y1,x2,y2 -> (N,) bool, True inside any box grown by ``pad`` pixels."""
+def in_boxes(raw_uv: np.ndarray, boxes: np.ndarray, pad: float = 0.0, grow: float = 0.0) -> np.ndarray:
+    """(N,2) pixels, (K,4) boxes x1,y1,x2,y2 -> (N,) bool, True inside any box grown on each side by ``pad``
+    pixels plus ``grow`` times its width (left/right) or height (top/bottom)."""
     uv = np.asarray(raw_uv, dtype=np.float64).reshape(-1, 2)
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
     if len(b) == 0 or len(uv) == 0:
         return np.zeros(len(uv), bool)
     x, y = uv[:, 0:1], uv[:, 1:2]
-    hit = (x >= b[:, 0] - pad) & (x <= b[:, 2] + pad) & (y >= b[:, 1] - pad) & (y <= b[:, 3] + pad)
+    px = pad + grow * (b[:, 2] - b[:, 0])
+    py = pad + grow * (b[:, 3] - b[:, 1])
+    hit = (x >= b[:, 0] - px) & (x <= b[:, 2] + px) & (y >= b[:, 1] - py) & (y <= b[:, 3] + py)
     return hit.any(axis=1)

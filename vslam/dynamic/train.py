@@ -72,6 +72,7 @@ class TrainConfig:
     bn_batches: int = 16
     copy_paste: float = 0.0  # probability that a training sample is a background with pasted COCO people
     paste_people: tuple[int, int] = (1, 4)  # people per pasted sample (inclusive range)
+    paste_closeup: float = 0.0  # probability that a pasted person is 1-2 image heights tall, cut by the frame
     # what people are pasted onto: COCO train images (their labels kept) and training frames of the sequences;
     # "kitti" is offered but off by default: its frames hold unlabelled cars and cyclists (negatives they are not)
     backgrounds: tuple[str, ...] = ("coco", "tum", "euroc")
@@ -205,7 +206,8 @@ def draw_sample(data: TrainData, cfg: TrainConfig, rng: np.random.Generator) -> 
         if not len(bg.boxes):  # an unlabelled frame: a random 4:3 window of it
             bg = Sample(crop_background(bg.image, rng), bg.boxes, bg.labels)
         lo, hi = cfg.paste_people
-        s = paste(bg, data.cutouts, cfg.classes.index("person"), rng, int(rng.integers(lo, hi + 1)))
+        s = paste(bg, data.cutouts, cfg.classes.index("person"), rng, int(rng.integers(lo, hi + 1)),
+                  closeup=cfg.paste_closeup)
     else:
         s = data.samples[int(rng.integers(len(data.samples)))]
     if cfg.grey > 0 and rng.random() < cfg.grey:
