@@ -68,4 +68,57 @@ def test_one_bad_depth_or_match_is_not_enough():
         uv, depth, d, _ = _observe(T, Xw, desc, rng)
         flagged = chk.check(T, uv, depth, d)
     assert not flagged.any()
-    assert (chk.residual_votes(np.full((1, 3), np.nan), np.full(1, np.nan), desc[:1]) == 0).all()  # no depth: no vote
+    votes, tested = chk.residual_votes(np.full((1, 3), np.nan), np.full(1, np.nan), desc[:1])
+    assert votes.sum() == tested.sum() == 0  # no depth: no vote, no comparison
+
+
+def test_static_detector_boxes_are_kept_and_moving_ones_masked():
+    """keep_static_boxes: the box of the standing 'person' (a sitting person, or a false detection on a static
+    object) is released once its keypoints were compared and showed no motion; the walker's box stays masked.
+    Off: both boxes stay masked."""
+    from vslam.data.types import Frame
+    from vslam.dynamic import DynamicConfig, DynamicFilter, in_boxes
+    from vslam.dynamic.detector import Detections
+    from vslam.features.base import Features
+
+    def run(keep_static: bool) -> list[tuple[float, float, float]]:
+        rng = np.random.default_rng(3)
+        bg, mover0, still, desc = _scene(rng)
+        cls = np.r_[np.zeros(400), np.ones(60), 2 * np.ones(60)].astype(int)
+        boxes: list[np.ndarray] = []
+
+        class TwoBoxes:
+            def detect(self, image):
+                return Detections(np.array(boxes), np.array([0.9, 0.9]), np.zeros(2, np.int64), np.array(["person"] * 2, dtype=object))
+
+        geo = GeometricConfig(enabled=True, keep_static_boxes=keep_static)
+        flt = DynamicFilter(DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.0, geometric=geo), CAM, detector=TwoBoxes())
+        out = []
+        for k in range(14):
+            T = np.eye(4)
+            T[:3, 3] = [0.02 * k, 0.0, 0.01 * k]
+            Xw = np.vstack([bg, mover0 + [0.04 * k, 0.0, 0.0], still])
+            uv, depth, d, order = _observe(T, Xw, desc, rng)
+            c = cls[order]
+            img_depth = np.zeros((480, 640), np.float32)
+            for want in (0, 1, 2):  # people in front of the wall win a shared pixel
+                px = np.rint(uv[c == want]).astype(int)
+                ok = (px[:, 0] >= 0) & (px[:, 0] < 640) & (px[:, 1] >= 0) & (px[:, 1] < 480)
+                img_depth[px[ok, 1], px[ok, 0]] = depth[c == want][ok]
+            boxes[:] = [np.r_[uv[c == j].min(0) - 5, uv[c == j].max(0) + 5] for j in (1, 2)]
+            f = Features(uv, uv, d, np.zeros(len(uv)), np.ones(len(uv)))
+            keep = flt.keep(Frame(k, k / 30, np.zeros((480, 640), np.uint8), depth=img_depth), f)
+            flt.observe(T)
+            wall = (c == 0) & ~in_boxes(uv, np.array(boxes))  # the wall outside both boxes
+            out.append((keep[wall].mean(), keep[c == 1].mean(), keep[c == 2].mean()))
+        return out
+
+    on, off = run(True), run(False)
+    for k in range(14):
+        assert off[k][1] == 0.0 and off[k][2] == 0.0, k  # boxes mask everything in them
+        assert on[k][1] == 0.0, k  # the walker never gets out
+        assert on[k][0] >= 0.99 and off[k][0] >= 0.99, k
+        if k >= 7:  # compared against min_votes past frames from frame 6: released from the next frame on
+            assert on[k][2] >= 0.9, k  # a few may be flagged one by one (two points in one depth pixel)
+        else:
+            assert on[k][2] == 0.0, k

@@ -35,8 +35,17 @@ class GeometricConfig:
     region_depth_m: float = 0.3
     min_depth: float = 0.1
     max_depth: float = 10.0
+    # detector boxes: a box whose keypoints were compared against min_votes past frames (at least
+    # static_min_points of them) and of which at most static_max_moving flagged motion holds a static instance
+    # (a sitting person, or a false detection: the teddy bear read as a person); overlapping boxes of the next
+    # frames (IoU >= 0.5) are then not masked while the verdict holds, and their moving keypoints still are
+    keep_static_boxes: bool = False
+    static_min_points: int = 8
+    static_max_moving: float = 0.1
 
     def __post_init__(self) -> None:
+        if self.static_min_points < 1 or not 0 <= self.static_max_moving < 1:
+            raise ConfigError("slam.dynamic.geometric: static_min_points must be >= 1 and static_max_moving in [0, 1)")
         if not self.frame_gaps or min(self.frame_gaps) < 1:
             raise ConfigError("slam.dynamic.geometric.frame_gaps must be a non-empty list of gaps >= 1")
         if not 1 <= self.min_votes <= len(self.frame_gaps):

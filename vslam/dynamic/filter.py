@@ -10,7 +10,7 @@ import numpy as np
 
 from vslam.data.types import Frame, PinholeCamera
 from vslam.dynamic.config import DynamicConfig
-from vslam.dynamic.masking import dilate, in_boxes, in_mask
+from vslam.dynamic.masking import box_iou, dilate, in_boxes, in_mask
 from vslam.dynamic.motion import GeometricCheck
 from vslam.features.base import Features
 
@@ -20,7 +20,11 @@ log = logging.getLogger(__name__)
 class DynamicFilter:
     """Per frame: ``keep(frame, features)`` before tracking (masks/boxes of dynamic objects and the regions the
     geometric check flagged in the previous frame), then ``observe(T_world_cam)`` once the pose is tracked
-    (geometric check; returns the kept keypoints that turned out to move, to be left out of mapping)."""
+    (geometric check; returns the kept keypoints that turned out to move, to be left out of mapping).
+
+    With ``geometric.keep_static_boxes`` the check also judges each detector box of the frame from its own
+    keypoints; boxes of the next frame that overlap one judged static are not masked (DynaSLAM keeps a sitting
+    person's points only by luck of its region growing; here the verdict is per object and renewed every frame)."""
 
     def __init__(self, cfg: DynamicConfig, cam: PinholeCamera, detector: object | None = None):
         self.cfg, self.cam = cfg, cam
@@ -33,6 +37,8 @@ class DynamicFilter:
             if cfg.img_size:  # wide frames (KITTI 1226x370): people stay large enough at a larger input
                 self.detector.img_size = cfg.img_size
         self._recent: deque[tuple[float, np.ndarray]] = deque()  # (timestamp, boxes) of this and recent frames
+        self._boxes = np.zeros((0, 4))  # this frame's detector boxes
+        self._static = np.zeros((0, 4))  # boxes of the last checked frame judged static
         self._feats: Features | None = None
         self._depth = np.zeros(0)
         self._kept = np.zeros(0, bool)
@@ -49,10 +55,14 @@ class DynamicFilter:
         if c.source == "detector":
             det = self.detector.detect(frame.image)  # type: ignore[union-attr]
             sel = (det.scores >= c.score_threshold) & np.isin(det.class_names, list(c.classes))
-            self._recent.append((frame.timestamp, det.boxes[sel]))
+            self._boxes = det.boxes[sel].reshape(-1, 4)
+            self._recent.append((frame.timestamp, self._boxes))
             while frame.timestamp - self._recent[0][0] > c.box_memory_s + 1e-6:
                 self._recent.popleft()
-            return in_boxes(feats.raw, np.concatenate([b for _, b in self._recent]), c.dilation_px, c.box_grow)
+            boxes = np.concatenate([b for _, b in self._recent])
+            if len(self._static) and len(boxes):
+                boxes = boxes[box_iou(boxes, self._static).max(axis=1) < 0.5]
+            return in_boxes(feats.raw, boxes, c.dilation_px, c.box_grow)
         return np.zeros(len(feats), bool)
 
     def keep(self, frame: Frame, feats: Features) -> np.ndarray:
@@ -73,9 +83,22 @@ class DynamicFilter:
             return np.zeros(n_kept, bool)
         if not tracked:
             self.geo.reset()
+            self._static = np.zeros((0, 4))
             return np.zeros(n_kept, bool)
         flagged = self.geo.check(T_world_cam, self._feats.uv, self._depth, self._feats.desc)
+        if self.cfg.geometric.keep_static_boxes:
+            self._static = self._static_boxes(self._feats, self.geo)
         return flagged[self._kept]
+
+    def _static_boxes(self, feats: Features, geo: GeometricCheck) -> np.ndarray:
+        """This frame's detector boxes whose compared keypoints show (almost) no motion."""
+        g, out = self.cfg.geometric, []
+        for box in self._boxes:
+            inside = in_boxes(feats.raw, box[None], self.cfg.dilation_px, self.cfg.box_grow)
+            n = int((inside & geo.tested).sum())
+            if n >= g.static_min_points and (inside & geo.seeds).sum() <= g.static_max_moving * n:
+                out.append(box)
+        return np.array(out, np.float64).reshape(-1, 4)
 
     def _keypoint_depth(self, frame: Frame, feats: Features) -> np.ndarray:
         """(N,) metres at each keypoint from the frame's depth map (RGB-D); NaN without one (the geometric check

@@ -37,6 +37,7 @@ class GeometricCheck:
         self.history: deque[_Past] = deque(maxlen=max(cfg.frame_gaps))
         self._region_uv = np.zeros((0, 2))
         self._region_z = np.zeros(0)
+        self.seeds = self.tested = np.zeros(0, bool)
 
     def reset(self) -> None:
         """Forget the past (after tracking loss the poses of old and new frames are not comparable)."""
@@ -54,10 +55,12 @@ class GeometricCheck:
         ms = [m for m in cv2.BFMatcher(norm, crossCheck=True).match(a, b) if m.distance <= limit]
         return np.array([m.queryIdx for m in ms], np.int64), np.array([m.trainIdx for m in ms], np.int64)
 
-    def residual_votes(self, Xw: np.ndarray, depth: np.ndarray, desc: np.ndarray) -> np.ndarray:
-        """(N,) number of past frames (of ``frame_gaps``) against which a keypoint's world point moved."""
+    def residual_votes(self, Xw: np.ndarray, depth: np.ndarray, desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) number of past frames (of ``frame_gaps``) against which a keypoint's world point moved, and (N,)
+        number it was compared with at all (matched, depth in both)."""
         c = self.cfg
         votes = np.zeros(len(Xw), np.int64)
+        tested = np.zeros(len(Xw), np.int64)
         for g in c.frame_gaps:
             if len(self.history) < g:
                 continue
@@ -65,19 +68,23 @@ class GeometricCheck:
             i, j = self._match(desc, past.desc)
             ok = np.isfinite(Xw[i, 0]) & np.isfinite(past.Xw[j, 0])
             i, j = i[ok], j[ok]
+            tested[i] += 1
             r = np.linalg.norm(Xw[i] - past.Xw[j], axis=1)
             votes[i[r > c.abs_m + c.rel * depth[i]]] += 1
-        return votes
+        return votes, tested
 
     def check(self, T_world_cam: np.ndarray, uv: np.ndarray, depth: np.ndarray, desc: np.ndarray) -> np.ndarray:
         """uv: (N,2) ideal pixels; depth: (N,) metres (NaN: none); desc: (N,D). -> (N,) bool flagged as moving
-        (seeds with ``min_votes`` and their region). The frame joins the history afterwards."""
+        (seeds with ``min_votes`` and their region). The frame joins the history afterwards; ``seeds`` and
+        ``tested`` (compared against ``min_votes`` past frames) stay readable until the next check."""
         c = self.cfg
         z = np.where((depth >= c.min_depth) & (depth <= c.max_depth), depth, np.nan)
         pts = self.cam.backproject(uv, np.nan_to_num(z)) if len(uv) else np.zeros((0, 3))
         Xw = pts @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
         Xw[~np.isfinite(z)] = np.nan
-        seeds = self.residual_votes(Xw, z, desc) >= c.min_votes
+        votes, tested = self.residual_votes(Xw, z, desc)
+        seeds = votes >= c.min_votes
+        self.seeds, self.tested = seeds, tested >= c.min_votes
         flagged = seeds | self._near(uv, z, uv[seeds], z[seeds])
         self.history.append(_Past(Xw, desc))
         self._region_uv, self._region_z = uv[flagged], z[flagged]
