@@ -107,9 +107,41 @@ def test_make_dynamic_rows_name_their_sequence(tmp_path):
 
     with pytest.raises(ConfigError, match="needs 'data'"):
         _composited({"people": 2}, tmp_path)
-    with pytest.raises(ConfigError, match="takes people, seed, coco"):
+    with pytest.raises(ConfigError, match="takes people, seed .seeds: kind ab., coco"):
         _composited({"data": "tum/x", "walkers": 2}, tmp_path)
     done = tmp_path / "_data" / "x-people2-seed1"
     done.mkdir(parents=True)
     (done / "boxes.txt").write_text("# already composited\n")  # written last, once, then reused as it is
     assert _composited({"data": "tum/x", "people": 2, "seed": 1}, tmp_path) == ("tum", done.resolve())
+
+
+def test_ab_rows_over_composites_run_one_grid_point_per_walker_seed(tmp_path, monkeypatch):
+    """make_dynamic seeds: A and B run on each seed's composite (same folder for both), the table names seeds."""
+    import vslam.batch
+    import vslam.bench
+
+    monkeypatch.setattr(vslam.bench, "_composited", lambda spec, jobs_dir: ("tum", tmp_path / f"walkers-{spec['seed']}"))
+    seen = []
+
+    def fake_run_jobs(jobs, workers, ray):
+        seen.extend(jobs)
+        return [{"ate_rmse": 0.001 * (i + 1)} for i in range(len(jobs))]
+
+    monkeypatch.setattr(vslam.batch, "run_jobs", fake_run_jobs)
+    suite = tmp_path / "configs" / "suite.yaml"
+    suite.parent.mkdir()
+    suite.write_text("rows:\n  - name: people-seeds\n    kind: ab\n    config: configs/x.yaml\n"
+                     "    set: [slam.dynamic.source=gt_mask]\n    treatment: [slam.dynamic.source=detector]\n"
+                     "    make_dynamic: {data: tum/teddy, people: 3, seeds: [0, 7]}\n")
+    run_bench(suite, tmp_path / "B.md", jobs_dir=tmp_path / "runs")
+    assert [j.overrides["dataset"]["path"] for j in seen] == [str(tmp_path / f"walkers-{s}") for s in (0, 0, 7, 7)]
+    assert [j.overrides["slam"]["dynamic"]["source"] for j in seen] == ["gt_mask", "detector"] * 2
+    assert {j.overrides["dataset"]["kind"] for j in seen} == {"tum"}
+    r = load_sidecar(tmp_path / "B.json")["people-seeds"]["result"]
+    assert r["points"] == ["make_dynamic.seed=0", "make_dynamic.seed=7"]
+    assert r["ate_a"] == [0.001, 0.003] and r["ate_b"] == [0.002, 0.004]
+    assert r["mean_ratio"] == pytest.approx(0.003 / 0.002)
+    assert "**1.50x** (0.0020 → 0.0030 m)" in (tmp_path / "B.md").read_text()  # the means the target speaks of
+    suite.write_text(suite.read_text().replace("kind: ab", "kind: run"))
+    with pytest.raises(ConfigError, match="seeds: \\[..\\] is for kind ab rows"):
+        run_bench(suite, tmp_path / "B.md", jobs_dir=tmp_path / "runs")

@@ -239,7 +239,9 @@ def ab_table(rows: list[tuple[Any, dict[str, Any]]]) -> list[str]:
         if "error" in r:
             lines.append(md_failed_row(row, r["error"], 9))
             continue
-        mean = "–" if r.get("mean_ratio") is None else f"**{r['mean_ratio']:.2f}x**"
+        both = [(a, b) for a, b in zip(r["ate_a"], r["ate_b"]) if a is not None and b is not None]
+        mean = "–" if r.get("mean_ratio") is None else (
+            f"**{r['mean_ratio']:.2f}x** ({statistics.mean(a for a, _ in both):.4f} → {statistics.mean(b for _, b in both):.4f} m)")
         kf = "–" if r.get("kf_ms_ratio") is None else f"{r['kf_ms_ratio']:.2f}x"
         err = f" ({len(r['errors'])} runs failed)" if r.get("errors") else ""
         lines.append(f"| {row.name} | {', '.join(row.treatment)} | {len(r['points'])}{err} | {vals(r['ate_a'], '.4f')} | "

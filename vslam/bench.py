@@ -57,7 +57,8 @@ class BenchRow:
     # kind "ab": every grid point run without (A) and with (B) these KEY=VALUE overrides (``batch.ab_result``)
     treatment: tuple[str, ...] = ()
     # kind "run" on composited people (issue 5): {data: TUM folder under $VSLAM_DATA, people: 3, seed: 0,
-    # coco: coco128}; ``vslam make-dynamic`` writes it once under <runs>/_data and dataset.path points there
+    # coco: coco128}; ``vslam make-dynamic`` writes it once under <runs>/_data and dataset.path points there.
+    # Kind "ab" takes seeds: [..] instead of seed: one composite (other walkers) per grid point
     make_dynamic: dict[str, Any] = field(default_factory=dict)
 
 
@@ -368,10 +369,15 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
     now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     machine = machine_info()
     plan: list[tuple[BenchRow, list[Job]]] = []
+    ab_labels: dict[str, dict[str, Any]] = {}
     for row in rows:
         cfg = str(Path(row.config) if Path(row.config).is_absolute() else root / row.config) if row.config else None
         over = parse_overrides(list(row.set))
-        if row.make_dynamic:
+        grid, labels = row.grid, row.grid  # the grid the jobs run over / the one the table names
+        if row.make_dynamic and "seeds" in row.make_dynamic:
+            grid, labels, kind = _composited_grid(row, jobs_dir)
+            over = deep_merge(over, {"dataset": {"kind": kind}})
+        elif row.make_dynamic:
             kind, path = _composited(row.make_dynamic, jobs_dir)
             over = deep_merge(over, {"dataset": {"kind": kind, "path": str(path)}})
         if row.kind == "batch":  # runs its own serial / pool / Ray passes
@@ -380,7 +386,8 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
         elif row.kind == "fusion":  # one seeded, deterministic run: repeating it only costs time
             plan.append((row, [Job("fusion", row.experiment, over, str(jobs_dir / row.name))]))
         elif row.kind == "ab":  # A and B on every grid point, in the same pool as the other rows
-            plan.append((row, ab_jobs(cfg, over, row.grid, parse_overrides(list(row.treatment)), str(jobs_dir / row.name))))
+            plan.append((row, ab_jobs(cfg, over, grid, parse_overrides(list(row.treatment)), str(jobs_dir / row.name))))
+            ab_labels[row.name] = labels
         else:  # a place / features row is deterministic and reports no timing that repeats would steady
             n = 1 if row.kind in ("place", "features", "detector") else max(1, repeat)
             plan.append((row, [Job(row.kind, cfg, over, str(jobs_dir / f"{row.name}-{i}")) for i in range(n)]))
@@ -388,7 +395,7 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
     parallel = {"parallel": workers if ray is None else f"ray:{workers}"} if workers > 1 or ray is not None else {}
     for row, jobs in plan:
         done = [next(results) for _ in jobs]
-        result = ab_result(row.grid, done) if row.kind == "ab" else _aggregate(done)
+        result = ab_result(ab_labels[row.name], done) if row.kind == "ab" else _aggregate(done)
         kept[row.name] = {"result": _json_safe(result), "measured": now, "repeat": 1 if row.kind == "ab" else len(jobs),
                           "machine": machine, **parallel}
     dropped = sorted(set(kept) - names)
@@ -411,7 +418,7 @@ def _composited(spec: dict[str, Any], jobs_dir: Path) -> tuple[str, Path]:
 
     unknown = set(spec) - {"data", "people", "seed", "coco"}
     if unknown or "data" not in spec:
-        raise ConfigError(f"make_dynamic: needs 'data' and takes people, seed, coco; got {sorted(spec)}")
+        raise ConfigError(f"make_dynamic: needs 'data' and takes people, seed (seeds: kind ab), coco; got {sorted(spec)}")
     src = data_root() / str(spec["data"])
     cfg = walker_config(src, int(spec["people"]) if "people" in spec else None, int(spec.get("seed", 0)))
     kitti = is_kitti_layout(src)
@@ -420,6 +427,19 @@ def _composited(spec: dict[str, Any], jobs_dir: Path) -> tuple[str, Path]:
     if not (seq / "boxes.txt").is_file():  # written last
         seq = make_dynamic(src, out, data_root() / str(spec.get("coco", "coco128")), cfg)
     return ("kitti" if kitti else "tum"), seq
+
+
+def _composited_grid(row: BenchRow, jobs_dir: Path) -> tuple[dict[str, list[Any]], dict[str, list[Any]], str]:
+    """Kind "ab" with make_dynamic seeds: (grid over the composites' dataset.path, the same grid named by seed,
+    dataset kind). One seed's ATE swings with what its walkers do (a missed close-up, a false box), a mean over
+    composites much less."""
+    spec = dict(row.make_dynamic)
+    seeds = spec.pop("seeds")
+    if row.kind != "ab" or "seed" in spec or not isinstance(seeds, list) or not seeds:
+        raise ConfigError(f"bench row {row.name}: make_dynamic seeds: [..] is for kind ab rows, without seed")
+    made = [_composited({**spec, "seed": s}, jobs_dir) for s in seeds]
+    return ({"dataset.path": [str(p) for _, p in made], **row.grid}, {"make_dynamic.seed": list(seeds), **row.grid},
+            made[0][0])
 
 
 def _sweep_rows(rows: list[BenchRow], sweep: dict[str, list[Any]]) -> list[BenchRow]:

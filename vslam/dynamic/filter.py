@@ -39,6 +39,8 @@ class DynamicFilter:
         self._recent: deque[tuple[float, np.ndarray]] = deque()  # (timestamp, boxes) of this and recent frames
         self._boxes = np.zeros((0, 4))  # this frame's detector boxes
         self._static = np.zeros((0, 4))  # boxes of the last checked frame judged static
+        self._movers: list[tuple[float, np.ndarray]] = []  # (time, box) of objects seen moving, followed by overlap
+        self._t = 0.0
         self._feats: Features | None = None
         self._depth = np.zeros(0)
         self._kept = np.zeros(0, bool)
@@ -55,7 +57,7 @@ class DynamicFilter:
         if c.source == "detector":
             det = self.detector.detect(frame.image)  # type: ignore[union-attr]
             sel = (det.scores >= c.score_threshold) & np.isin(det.class_names, list(c.classes))
-            self._boxes = det.boxes[sel].reshape(-1, 4)
+            self._boxes, self._t = det.boxes[sel].reshape(-1, 4), frame.timestamp
             self._recent.append((frame.timestamp, self._boxes))
             while frame.timestamp - self._recent[0][0] > c.box_memory_s + 1e-6:
                 self._recent.popleft()
@@ -83,20 +85,38 @@ class DynamicFilter:
             return np.zeros(n_kept, bool)
         if not tracked:
             self.geo.reset()
-            self._static = np.zeros((0, 4))
+            self._static, self._movers = np.zeros((0, 4)), []
             return np.zeros(n_kept, bool)
         flagged = self.geo.check(T_world_cam, self._feats.uv, self._depth, self._feats.desc)
         if self.cfg.geometric.keep_static_boxes:
             self._static = self._static_boxes(self._feats, self.geo)
         return flagged[self._kept]
 
+    @property
+    def static_boxes(self) -> np.ndarray:
+        """(K,4) detector boxes of the last checked frame judged static (``geometric.keep_static_boxes``)."""
+        return self._static.copy()
+
     def _static_boxes(self, feats: Features, geo: GeometricCheck) -> np.ndarray:
-        """This frame's detector boxes whose compared keypoints show (almost) no motion."""
+        """This frame's detector boxes whose object shows (almost) no motion and was not seen moving within
+        ``moving_memory_s`` (a box overlapping, IoU >= 0.3, a box of a moving object carries that object on: a
+        walker slows to a stop at every turn). The object is the box's front: compared keypoints within
+        ``region_depth_m`` behind the ``static_min_points``-th nearest of them (a walker's box can hold more
+        static background than walker, which would outvote it)."""
         g, out = self.cfg.geometric, []
+        self._movers = [(t, b) for t, b in self._movers if self._t - t <= g.moving_memory_s + 1e-6]
         for box in self._boxes:
-            inside = in_boxes(feats.raw, box[None], self.cfg.dilation_px, self.cfg.box_grow)
-            n = int((inside & geo.tested).sum())
-            if n >= g.static_min_points and (inside & geo.seeds).sum() <= g.static_max_moving * n:
+            inside = in_boxes(feats.raw, box[None], self.cfg.dilation_px, self.cfg.box_grow) & geo.tested
+            static = moving = False
+            if inside.sum() >= g.static_min_points:
+                near = np.sort(self._depth[inside])[g.static_min_points - 1]
+                front = inside & (self._depth <= near + g.region_depth_m)
+                n, n_moving = int(front.sum()), int((front & geo.seeds).sum())
+                static, moving = n_moving <= g.static_max_moving * n, n_moving > g.static_max_moving * n
+            known = np.array([b for _, b in self._movers]).reshape(-1, 4)
+            if moving or (len(known) and box_iou(box[None], known).max() >= 0.3):
+                self._movers.append((self._t, box))
+            elif static:
                 out.append(box)
         return np.array(out, np.float64).reshape(-1, 4)
 
