@@ -5,9 +5,9 @@ profiled again (``python -m vslam.profiling runs/x/stats.csv``). Per stage: the 
 runs on keyframes only, such as local BA, counts 0 on the other frames, so the means add up to the frame
 time), the median over the frames it ran on, how many frames that was, and its share of the mean total.
 "decode" is the time tracking waited for the next frame (frames are read on a background thread). With
-``slam.frontend_thread`` (the default) that thread also computes the image-only stages (features, lines and,
-without dynamic filtering, depth) ahead of tracking: their rows are then their cost there, on the second core,
-and not part of "total" (the tracking call); "decode" includes any wait for them.
+``slam.frontend_thread`` (the default) that thread also computes the image-only stages (features, lines, the
+dynamic-object detector and, without dynamic filtering, depth) ahead of tracking: their rows are then their cost
+there, on the second core, and not part of "total" (the tracking call); "decode" includes any wait for them.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 #: pipeline order; sub-stages of mapping are indented in the table
-ORDER = ("decode", "features", "dynamic", "lines", "depth", "pose", "mapping", "map_create", "map_fuse_cull", "map_ba",
+ORDER = ("decode", "features", "detector", "dynamic", "lines", "depth", "pose", "mapping", "map_create", "map_fuse_cull", "map_ba",
          "map_wait", "map_loop", "total")
 
 

@@ -10,7 +10,7 @@ torch = pytest.importorskip("torch")
 from vslam.dynamic.attention import ATTENTION, make_attention  # noqa: E402
 from vslam.dynamic.detector import Detector, letterbox, load_detector, save_checkpoint  # noqa: E402
 from vslam.dynamic.loss import ciou, detection_loss  # noqa: E402
-from vslam.dynamic.model import DetectorConfig, YoloDetector, decode, recalibrate_bn  # noqa: E402
+from vslam.dynamic.model import DetectorConfig, YoloDetector, decode, fuse_for_inference, recalibrate_bn  # noqa: E402
 from vslam.dynamic.nms import batched_nms, box_iou, nms  # noqa: E402
 
 torch.set_num_threads(1)
@@ -34,6 +34,24 @@ def test_shapes_per_attention(att):
     assert torch.all((probs >= 0) & (probs <= 1)) and torch.all(boxes[..., 2:] >= boxes[..., :2])
     x = torch.rand(2, 16, 5, 7)
     assert make_attention(att, 16)(x).shape == x.shape
+
+
+@pytest.mark.parametrize("att", sorted(ATTENTION))
+def test_fused_inference_copy_gives_the_same_outputs(att):
+    """Detector runs a copy with BatchNorm folded into the convolutions (channels-last): the same maps up to
+    float rounding, with BatchNorm statistics that are not the identity (recalibrated on data), and the model
+    handed in keeps its BatchNorm layers."""
+    torch.manual_seed(0)
+    m = YoloDetector(DetectorConfig(attention=att, **TINY))
+    recalibrate_bn(m, [torch.rand(2, 3, 64, 96) * 0.5 + 0.3])
+    m.eval()
+    fused = fuse_for_inference(m)
+    assert not any(isinstance(x, torch.nn.BatchNorm2d) for x in fused.modules())
+    assert any(isinstance(x, torch.nn.BatchNorm2d) for x in m.modules()) and not m.training
+    x = torch.rand(1, 64, 96, 3).permute(0, 3, 1, 2)  # channels-last, as detector.to_tensor makes it
+    with torch.no_grad():
+        for a, b in zip(m(x), fused(x)):
+            assert float((a - b).abs().max()) < 1e-4 * max(1.0, float(a.abs().max()))
 
 
 def test_full_n_scale_matches_yolov8n_size():

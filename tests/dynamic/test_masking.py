@@ -107,8 +107,14 @@ def test_detector_source_masks_only_confident_boxes_of_listed_classes():
 
     f = _grid_feats()
     cfg = DynamicConfig(enabled=True, source="detector", dilation_px=0, score_threshold=0.35)
-    keep = DynamicFilter(cfg, CAM, detector=FakeDetector()).keep(Frame(0, 0.0, np.zeros((48, 64), np.uint8)), f)
+    frame = Frame(0, 0.0, np.zeros((48, 64), np.uint8))
+    keep = DynamicFilter(cfg, CAM, detector=FakeDetector()).keep(frame, f)
     np.testing.assert_array_equal(keep, ~in_boxes(f.raw, np.array([[2.0, 5.0, 19.0, 29.0]])))
+    # detected ahead (the SLAM front end's prefetch thread): the same boxes, and keep() runs no network
+    boxes = DynamicFilter(cfg, CAM, detector=FakeDetector()).detect(frame)
+    np.testing.assert_array_equal(boxes, [[2.0, 5.0, 19.0, 29.0]])
+    np.testing.assert_array_equal(DynamicFilter(cfg, CAM, detector=object()).keep(frame, f, boxes), keep)
+    assert DynamicFilter(DynamicConfig(enabled=True, source="gt_mask"), CAM).detect(frame) is None
 
 
 def test_keypoints_on_depth_edges_are_not_checked():

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import torch
 
-from vslam.dynamic.model import DetectorConfig, YoloDetector, decode
+from vslam.dynamic.model import DetectorConfig, YoloDetector, decode, fuse_for_inference
 from vslam.errors import ConfigError
 from vslam.dynamic.nms import batched_nms
 
@@ -66,10 +66,11 @@ def postprocess(boxes: torch.Tensor, probs: torch.Tensor, conf: float, iou: floa
 
 
 class Detector:
-    """``detect(image)``: BGR or grey uint8 image -> Detections in that image's pixels."""
+    """``detect(image)``: BGR or grey uint8 image -> Detections in that image's pixels. Runs a fused copy of
+    ``model`` (``fuse_for_inference``); the model passed in is left as it was."""
 
     def __init__(self, model: YoloDetector, names: list[str], img_size: int = 640, conf: float = 0.25, iou: float = 0.6):
-        self.model, self.names = model.eval(), list(names)
+        self.model, self.names = fuse_for_inference(model), list(names)
         self.img_size, self.conf, self.iou = img_size, conf, iou
 
     def detect(self, image: np.ndarray) -> Detections:

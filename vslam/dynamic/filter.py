@@ -45,8 +45,20 @@ class DynamicFilter:
         self._depth = np.zeros(0)
         self._kept = np.zeros(0, bool)
 
-    def dynamic_source(self, frame: Frame, feats: Features) -> np.ndarray:
-        """(N,) bool: keypoints on dynamic objects according to ``cfg.source`` (dilated by ``dilation_px``)."""
+    def detect(self, frame: Frame) -> np.ndarray | None:
+        """(K,4) boxes of the configured classes at ``score_threshold`` (``source=detector``; None otherwise).
+
+        The image alone decides them and nothing here is stateful, so one other thread may run this ahead of
+        ``keep`` (the SLAM front end's prefetch thread does: the network then costs tracking nothing)."""
+        if self.cfg.source != "detector":
+            return None
+        det = self.detector.detect(frame.image)  # type: ignore[union-attr]
+        sel = (det.scores >= self.cfg.score_threshold) & np.isin(det.class_names, list(self.cfg.classes))
+        return det.boxes[sel].reshape(-1, 4)
+
+    def dynamic_source(self, frame: Frame, feats: Features, boxes: np.ndarray | None = None) -> np.ndarray:
+        """(N,) bool: keypoints on dynamic objects according to ``cfg.source`` (dilated by ``dilation_px``);
+        ``boxes``: this frame's ``detect`` if computed ahead."""
         c = self.cfg
         if c.source == "gt_mask":
             if frame.dynamic_mask is not None:
@@ -55,9 +67,8 @@ class DynamicFilter:
                 return in_boxes(feats.raw, frame.boxes, c.dilation_px)
             return np.zeros(len(feats), bool)
         if c.source == "detector":
-            det = self.detector.detect(frame.image)  # type: ignore[union-attr]
-            sel = (det.scores >= c.score_threshold) & np.isin(det.class_names, list(c.classes))
-            self._boxes, self._t = det.boxes[sel].reshape(-1, 4), frame.timestamp
+            self._boxes = self.detect(frame) if boxes is None else boxes
+            self._t = frame.timestamp
             self._recent.append((frame.timestamp, self._boxes))
             while frame.timestamp - self._recent[0][0] > c.box_memory_s + 1e-6:
                 self._recent.popleft()
@@ -67,9 +78,10 @@ class DynamicFilter:
             return in_boxes(feats.raw, boxes, c.dilation_px, c.box_grow)
         return np.zeros(len(feats), bool)
 
-    def keep(self, frame: Frame, feats: Features) -> np.ndarray:
-        """(N,) bool over ``feats``: True for keypoints that may be used for tracking and mapping."""
-        dyn = self.dynamic_source(frame, feats)
+    def keep(self, frame: Frame, feats: Features, boxes: np.ndarray | None = None) -> np.ndarray:
+        """(N,) bool over ``feats``: True for keypoints that may be used for tracking and mapping; ``boxes``:
+        this frame's ``detect`` if computed ahead (else it runs here)."""
+        dyn = self.dynamic_source(frame, feats, boxes)
         self._feats = feats
         self._depth = self._keypoint_depth(frame, feats)
         if self.geo is not None:

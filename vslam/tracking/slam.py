@@ -67,13 +67,15 @@ class SlamConfig:
 class FrontEnd:
     """What one frame's images alone determine (no map state), from ``SlamTracker.frontend``: keypoints, the
     right image's keypoints (stereo), line segments (lines on), keypoint depth (None: computed in ``track``,
-    after dynamic filtering), and ms per stage where it ran."""
+    after dynamic filtering), the detector's boxes of dynamic objects (``slam.dynamic.source=detector``), and ms
+    per stage where it ran."""
 
     feats: Features
     right: Features | None
     lines: LineFeatures | None
     depth: np.ndarray | None
     ms: dict[str, float]
+    boxes: np.ndarray | None = None
 
 
 class SlamTracker:
@@ -164,8 +166,11 @@ class SlamTracker:
         # dynamic filtering drops keypoints first, and rectified stereo matching depends on which are left
         depth = self._depth(frame, feats, right) if self.dynamic is None else None
         t3 = time.perf_counter()
-        ms = {"features": (t1 - t0) * 1e3, "lines": (t2 - t1) * 1e3, "depth": (t3 - t2) * 1e3}
-        return FrontEnd(feats, right, lines, depth, ms)
+        boxes = self.dynamic.detect(frame) if self.dynamic is not None else None
+        t4 = time.perf_counter()
+        ms = {"features": (t1 - t0) * 1e3, "lines": (t2 - t1) * 1e3, "depth": (t3 - t2) * 1e3,
+              "detector": (t4 - t3) * 1e3}
+        return FrontEnd(feats, right, lines, depth, ms, boxes)
 
     def _depth(self, frame: Frame, feats: Features, right: Features | None) -> np.ndarray:
         tc = self.cfg.tracking
@@ -187,7 +192,7 @@ class SlamTracker:
             front = self.frontend(frame)
         feats, t_dyn = front.feats, time.perf_counter()
         if self.dynamic is not None:  # issue 5: keypoints on moving objects reach neither tracking nor mapping
-            feats = feats.subset(np.flatnonzero(self.dynamic.keep(frame, feats)))
+            feats = feats.subset(np.flatnonzero(self.dynamic.keep(frame, feats, front.boxes)))
         ms_dynamic = (time.perf_counter() - t_dyn) * 1e3
         if self.lines is not None:
             self._line_feats, self._line_ids = front.lines, None
@@ -285,6 +290,8 @@ class SlamTracker:
                         "mapping": (t4 - t3) * 1e3 + ms_flush, **{f"map_{k}": v for k, v in ms_map.items()}}
         if self.dynamic is not None:
             est.times_ms["dynamic"] = ms_dynamic
+            if front.boxes is not None:
+                est.times_ms["detector"] = front.ms["detector"]
         if self.lines is not None:
             est.times_ms["lines"] = front.ms["lines"]
             est.n_lines = len(self._line_feats)
