@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from vslam.dynamic.copy_paste import crop_background, paste
+from vslam.dynamic.copy_paste import crop_background, paste, tilted
 from vslam.dynamic.data import Sample
 from vslam.paths import data_root
 
@@ -71,6 +71,38 @@ def test_closeup_pastes_are_taller_than_the_frame_and_cut_by_it():
     for seed in range(20):
         s = paste(bg, [_cutout(60, 24)], label=0, rng=np.random.default_rng(seed), n=1)
         assert all(y2 - y1 <= 0.95 * 120 + 1 for _, y1, _, y2 in s.boxes)
+
+
+def test_tilted_cutout_keeps_all_of_the_person():
+    """A 90-degree tilt turns a 60x24 upright person into a 24x60 lying one: same opaque area, nothing cut."""
+    cut = _cutout(60, 24)
+    t = tilted(cut, 90.0)
+    assert t.shape[:2] == (24, 60)
+    assert abs(int((t[..., 3] >= 128).sum()) - int((cut[..., 3] >= 128).sum())) <= 0.03 * (cut[..., 3] >= 128).sum()
+    t = tilted(cut, 20.0)
+    ys, xs = np.nonzero(t[..., 3] >= 128)
+    assert ys.min() > 0 and xs.min() > 0 and ys.max() < t.shape[0] - 1 and xs.max() < t.shape[1] - 1
+
+
+def test_occluded_pastes_are_labelled_by_what_is_left_visible():
+    """occluded=1 on a textured background: part of every kept person is covered by scene texture, and the box
+    is still the box of its visible pixels (smaller than the box of the person pasted without occlusion)."""
+    rng = np.random.default_rng(0)
+    bg = Sample(rng.integers(0, 100, (120, 160, 3), dtype=np.uint8), np.zeros((0, 4)), np.zeros(0, np.int64))
+    smaller = 0
+    for seed in range(20):
+        plain = paste(bg, [_cutout(60, 24, 255)], label=0, rng=np.random.default_rng(seed), n=1)
+        hid = paste(bg, [_cutout(60, 24, 255)], label=0, rng=np.random.default_rng(seed), n=1, occluded=1.0)
+        lit = hid.image[..., 0] >= 115  # the cutout is >= 127 (gain >= 0.5) on a background below 100
+        if len(hid.boxes) == 0:
+            continue
+        x1, y1, x2, y2 = hid.boxes[0].astype(int)
+        ys, xs = np.nonzero(lit)
+        assert max(abs(xs.min() - x1), abs(xs.max() + 1 - x2), abs(ys.min() - y1), abs(ys.max() + 1 - y2)) <= 2  # feathered edge
+        assert lit.sum() < 0.75 * (plain.image[..., 0] >= 115).sum()
+        px1, py1, px2, py2 = plain.boxes[0]
+        smaller += int((x2 - x1) * (y2 - y1) < 0.95 * (px2 - px1) * (py2 - py1))
+    assert smaller >= 8
 
 
 def test_crop_background_keeps_at_most_four_thirds():

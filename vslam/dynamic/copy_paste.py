@@ -12,7 +12,8 @@ pixels, and it is dropped when less than ``min_visible`` of it is left. Sizes: a
 height, and with probability ``closeup`` 1-2 image heights, cut by the frame (someone walking past the camera:
 the dynamic benchmark's walkers come that close, and a detector that never saw a torso without head and feet
 misses them); brightness follows the background (gain 0.5-1.3) and the alpha edge is feathered by a 3x3 blur,
-so the pasted outline is not a shortcut.
+so the pasted outline is not a shortcut. Optionally a person leans (``tilt``) or is partly hidden behind a patch
+of the scene (``occluded``): the benchmark's walkers lean when the camera rolls and pass behind the teddy bear.
 """
 
 from __future__ import annotations
@@ -53,18 +54,65 @@ def crop_background(img: np.ndarray, rng: np.random.Generator, aspect: float = 4
     return img[:, x0:x0 + cw]
 
 
+def tilted(cut: np.ndarray, degrees: float) -> np.ndarray:
+    """A BGRA cutout rotated by ``degrees`` on a canvas grown to hold all of it (transparent corners)."""
+    ch, cw = cut.shape[:2]
+    M = cv2.getRotationMatrix2D((cw / 2, ch / 2), degrees, 1.0)
+    c, s = abs(M[0, 0]), abs(M[0, 1])
+    nw, nh = int(np.ceil(ch * s + cw * c - 1e-6)), int(np.ceil(ch * c + cw * s - 1e-6))
+    M[0, 2] += nw / 2 - cw / 2
+    M[1, 2] += nh / 2 - ch / 2
+    return cv2.warpAffine(cut, M, (nw, nh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
+
+
+def occlude(img: np.ndarray, scene: np.ndarray, owner: np.ndarray, box: tuple[int, int, int, int],
+            rng: np.random.Generator) -> None:
+    """Cover 30-70 % of a pasted person (``box`` x0, y0, x1, y1 of its pasted pixels) with a patch of ``scene``
+    (the background before any paste, so no piece of a person is copied unlabelled) from elsewhere, in place:
+    from the left, the right or below, or a band through the middle (someone behind a teddy bear on a table
+    shows two halves). Covered pixels belong to no paste (``owner`` -1)."""
+    H, W = img.shape[:2]
+    X0, Y0, X1, Y1 = box
+    bw, bh, f = X1 - X0, Y1 - Y0, rng.uniform(0.3, 0.7)
+    side = int(rng.integers(4))
+    if side == 0:
+        x0, x1, y0, y1 = X0, X0 + round(f * bw), Y0, Y1
+    elif side == 1:
+        x0, x1, y0, y1 = X1 - round(f * bw), X1, Y0, Y1
+    elif side == 2:
+        x0, x1, y0, y1 = X0, X1, Y1 - round(f * bh), Y1
+    else:
+        w = max(1, round(f * bw * 0.7))
+        x0 = X0 + int(rng.integers(0, max(1, bw - w + 1)))
+        x1, y0, y1 = x0 + w, Y0 + int(rng.integers(0, max(1, bh // 3))), Y1
+    # two pixels more where the patch meets the box's edge: the feathered (blurred, resized) outline shows there
+    x0, y0 = max(0, x0 - 2 * (x0 == X0)), max(0, y0 - 2 * (y0 == Y0))
+    x1, y1 = min(W, x1 + 2 * (x1 == X1)), min(H, y1 + 2 * (y1 == Y1))
+    w, h = x1 - x0, y1 - y0
+    if w < 2 or h < 2:
+        return
+    sx, sy = int(rng.integers(0, W - w + 1)), int(rng.integers(0, H - h + 1))
+    img[y0:y1, x0:x1] = scene[sy:sy + h, sx:sx + w]
+    owner[y0:y1, x0:x1] = -1
+
+
 def paste(sample: Sample, cutouts: list[np.ndarray], label: int, rng: np.random.Generator, n: int,
           height: tuple[float, float] = (0.15, 0.95), min_visible: float = 0.3, closeup: float = 0.0,
-          closeup_height: tuple[float, float] = (1.0, 2.0)) -> Sample:
+          closeup_height: tuple[float, float] = (1.0, 2.0), tilt: float = 0.0, tilt_deg: float = 25.0,
+          occluded: float = 0.0) -> Sample:
     """``sample`` with ``n`` random cutouts (BGRA) pasted as class ``label``. Existing boxes are kept (a paste
     over a labelled object only hides part of it; a fully hidden one would still be labelled, which at our
-    paste sizes is rare and matches COCO's own occluded labels)."""
+    paste sizes is rare and matches COCO's own occluded labels). With probability ``tilt`` a cutout is rotated
+    by up to ``tilt_deg`` (a billboard seen by a rolling camera leans), with probability ``occluded`` part of it
+    is then covered (``occlude``). Probabilities at 0 draw nothing, so earlier recipes stay reproducible."""
     img = sample.image.copy()
     H, W = img.shape[:2]
     owner = np.full((H, W), -1, np.int32)  # which paste is visible at each pixel
     areas = []
     for k in range(n):
         cut = cutouts[int(rng.integers(len(cutouts)))]
+        if tilt > 0 and rng.random() < tilt:
+            cut = tilted(cut, rng.uniform(-tilt_deg, tilt_deg))
         ch, cw = cut.shape[:2]
         near = closeup > 0 and rng.random() < closeup  # no extra draw at 0: earlier recipes stay reproducible
         s = min(rng.uniform(*(closeup_height if near else height)) * H / ch, (2.0 if near else 1.0) * W / cw)
@@ -85,6 +133,10 @@ def paste(sample: Sample, cutouts: list[np.ndarray], label: int, rng: np.random.
         hard = part[..., 3] >= 128
         owner[Y0:Y1, X0:X1][hard] = k
         areas.append((k, int(hard.sum())))
+        if occluded > 0 and rng.random() < occluded:
+            ys, xs = np.nonzero(owner[Y0:Y1, X0:X1] == k)
+            if len(xs):
+                occlude(img, sample.image, owner, (X0 + xs.min(), Y0 + ys.min(), X0 + xs.max() + 1, Y0 + ys.max() + 1), rng)
     boxes, labels = [sample.boxes.reshape(-1, 4)], [sample.labels]
     for k, area in areas:
         ys, xs = np.nonzero(owner == k)

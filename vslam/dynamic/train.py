@@ -73,6 +73,8 @@ class TrainConfig:
     copy_paste: float = 0.0  # probability that a training sample is a background with pasted COCO people
     paste_people: tuple[int, int] = (1, 4)  # people per pasted sample (inclusive range)
     paste_closeup: float = 0.0  # probability that a pasted person is 1-2 image heights tall, cut by the frame
+    paste_tilt: float = 0.0  # probability that a pasted person leans (rotated by up to 25 degrees)
+    paste_occluded: float = 0.0  # probability that 30-70 % of a pasted person is hidden behind a patch of the scene
     # what people are pasted onto: COCO train images (their labels kept) and training frames of the sequences;
     # "kitti" is offered but off by default: its frames hold unlabelled cars and cyclists (negatives they are not)
     backgrounds: tuple[str, ...] = ("coco", "tum", "euroc")
@@ -90,6 +92,9 @@ class TrainConfig:
             raise ConfigError(f"train.img_size must be a multiple of 32, got {self.img_size}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ConfigError(f"train.device must be auto, cpu or cuda, got {self.device!r}")
+        for name in ("copy_paste", "paste_closeup", "paste_tilt", "paste_occluded"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"train.{name} is a probability (0-1), got {getattr(self, name)}")
 
 
 TOY = dict(img_size=64, batch=4, iterations=20, width=0.125, coco="", synthetic_seeds=(101,), synthetic_val_seeds=(201,),
@@ -207,7 +212,7 @@ def draw_sample(data: TrainData, cfg: TrainConfig, rng: np.random.Generator) -> 
             bg = Sample(crop_background(bg.image, rng), bg.boxes, bg.labels)
         lo, hi = cfg.paste_people
         s = paste(bg, data.cutouts, cfg.classes.index("person"), rng, int(rng.integers(lo, hi + 1)),
-                  closeup=cfg.paste_closeup)
+                  closeup=cfg.paste_closeup, tilt=cfg.paste_tilt, occluded=cfg.paste_occluded)
     else:
         s = data.samples[int(rng.integers(len(data.samples)))]
     if cfg.grey > 0 and rng.random() < cfg.grey:
