@@ -132,3 +132,25 @@ def test_static_detector_boxes_are_kept_and_moving_ones_masked():
             assert on[k][2] >= 0.95, k
         else:
             assert on[k][2] == 0.0, k
+
+
+def test_region_is_every_keypoint_near_a_seed_in_the_image_and_in_depth():
+    """``in_region``: within region_px of a flagged keypoint of the last frame and, where both have depth, within
+    region_depth_m of its depth (a keypoint or seed without depth joins on the image distance alone)."""
+    rng = np.random.default_rng(3)
+    cfg = GeometricConfig(enabled=True, region_px=25.0, region_depth_m=0.3)
+    geo = GeometricCheck(cfg, CAM)
+    seed_uv, seed_z = rng.uniform(0, 640, (60, 2)), rng.uniform(0.5, 4.0, 60)
+    seed_z[::7] = np.nan
+    geo._region_uv, geo._region_z = seed_uv, seed_z
+    uv = np.vstack([seed_uv[:40] + rng.normal(0, 10, (40, 2)), rng.uniform(0, 640, (400, 2))])
+    z = np.concatenate([seed_z[:40] + rng.normal(0, 0.3, 40), rng.uniform(0.5, 4.0, 400)])
+    z[::11] = np.nan
+    d_px = np.linalg.norm(uv[:, None] - seed_uv[None], axis=2)
+    dz = np.abs(z[:, None] - seed_z[None])
+    expect = ((d_px <= 25.0) & (~np.isfinite(dz) | (dz <= 0.3))).any(axis=1)
+    assert 20 < expect.sum() < 420  # both outcomes occur
+    np.testing.assert_array_equal(geo.in_region(uv, z), expect)
+    assert not geo.in_region(np.zeros((0, 2)), np.zeros(0)).size
+    geo.reset()
+    assert not geo.in_region(uv, z).any()
