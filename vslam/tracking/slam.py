@@ -57,9 +57,9 @@ class SlamConfig:
     inertial: VioConfig = field(default_factory=VioConfig)  # visual-inertial mode (vslam.tracking.vio), off by default
     lines: LineConfig = field(default_factory=LineConfig)  # point + Plücker-line features (issue 6), off by default
     dynamic: DynamicConfig = field(default_factory=DynamicConfig)  # dynamic-object filtering (issue 5), off by default
-    # Keypoints, line segments and keypoint depth depend on the image alone: ``vslam run`` computes them for the
-    # next frames on its prefetch thread while this one is tracked (OpenCV / torch release the GIL, so it uses a
-    # second core). Same numbers either way; off = everything on the tracking thread.
+    # Keypoints, line segments, keypoint depth and detector boxes depend on the image alone: ``vslam run``
+    # computes them for the next frames on its prefetch thread while this one is tracked (OpenCV / torch release
+    # the GIL, so it uses a second core). Same numbers either way; off = everything on the tracking thread.
     frontend_thread: bool = True
 
 
