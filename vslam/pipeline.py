@@ -150,7 +150,8 @@ def prefetch(seq: Sequence, n: int, depth: int = 3,
 # ms_detector: the dynamic-object detector (slam.dynamic.source=detector), blank otherwise.
 STAT_COLUMNS = ("index", "timestamp", "tracked", "status", "uncertain", "pose_std_m", "pose_std_deg", "n_features",
                 "n_matches", "n_inliers", "n_lines", "n_line_inliers", "ms_decode", "ms_features", "ms_detector",
-                "ms_dynamic", "ms_lines", "ms_depth", "ms_pose", "ms_mapping", "ms_map_create", "ms_map_fuse_cull", "ms_map_ba", "ms_map_wait", "ms_map_loop", "ms_total")
+                "ms_dynamic", "ms_lines", "ms_depth", "ms_pose", "ms_mapping", "ms_map_create", "ms_map_fuse_cull",
+                "ms_map_ba", "ms_map_wait", "ms_map_loop", "ms_total")
 
 
 def _fmt_stat(col: str, v: object) -> str:

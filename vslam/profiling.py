@@ -21,8 +21,8 @@ from pathlib import Path
 from typing import Any
 
 #: pipeline order; sub-stages of mapping are indented in the table
-ORDER = ("decode", "features", "detector", "dynamic", "lines", "depth", "pose", "mapping", "map_create", "map_fuse_cull", "map_ba",
-         "map_wait", "map_loop", "total")
+ORDER = ("decode", "features", "detector", "dynamic", "lines", "depth", "pose", "mapping", "map_create",
+         "map_fuse_cull", "map_ba", "map_wait", "map_loop", "total")
 
 
 def profile(stats_csv: str | Path) -> dict[str, Any]:

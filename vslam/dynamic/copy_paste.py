@@ -62,7 +62,8 @@ def tilted(cut: np.ndarray, degrees: float) -> np.ndarray:
     nw, nh = int(np.ceil(ch * s + cw * c - 1e-6)), int(np.ceil(ch * c + cw * s - 1e-6))
     M[0, 2] += nw / 2 - cw / 2
     M[1, 2] += nh / 2 - ch / 2
-    return cv2.warpAffine(cut, M, (nw, nh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
+    return cv2.warpAffine(cut, M, (nw, nh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                          borderValue=(0, 0, 0, 0))
 
 
 def occlude(img: np.ndarray, scene: np.ndarray, owner: np.ndarray, box: tuple[int, int, int, int],
@@ -136,7 +137,8 @@ def paste(sample: Sample, cutouts: list[np.ndarray], label: int, rng: np.random.
         if occluded > 0 and rng.random() < occluded:
             ys, xs = np.nonzero(owner[Y0:Y1, X0:X1] == k)
             if len(xs):
-                occlude(img, sample.image, owner, (X0 + xs.min(), Y0 + ys.min(), X0 + xs.max() + 1, Y0 + ys.max() + 1), rng)
+                box = (X0 + xs.min(), Y0 + ys.min(), X0 + xs.max() + 1, Y0 + ys.max() + 1)
+                occlude(img, sample.image, owner, box, rng)
     boxes, labels = [sample.boxes.reshape(-1, 4)], [sample.labels]
     for k, area in areas:
         ys, xs = np.nonzero(owner == k)
