@@ -207,11 +207,16 @@ def ab_result(grid: dict[str, list[Any]], results: list[dict[str, Any]]) -> dict
             out[f"ate_{key}"].append(r.get("ate_rmse"))
             out[f"kf_ms_{key}"].append((r.get("stages") or {}).get("mapping_per_kf"))
     out["errors"] = [r["error"] for r in results if "error" in r]
-    both = [(a, b) for a, b in zip(out["ate_a"], out["ate_b"]) if a is not None and b is not None]
+    both = _ate_pairs(out)
     out["ratios"] = [b / a for a, b in both]
     out["mean_ratio"] = _ratio_of_means(both)
     out["kf_ms_ratio"] = _ratio_of_means([(a, b) for a, b in zip(out["kf_ms_a"], out["kf_ms_b"]) if a and b])
     return out
+
+
+def _ate_pairs(r: dict[str, Any]) -> list[tuple[float, float]]:
+    """(ATE A, ATE B) of the grid points where both runs gave one."""
+    return [(a, b) for a, b in zip(r["ate_a"], r["ate_b"]) if a is not None and b is not None]
 
 
 def _ratio_of_means(pairs: list[tuple[float, float]]) -> float | None:
@@ -239,7 +244,7 @@ def ab_table(rows: list[tuple[Any, dict[str, Any]]]) -> list[str]:
         if "error" in r:
             lines.append(md_failed_row(row, r["error"], 9))
             continue
-        both = [(a, b) for a, b in zip(r["ate_a"], r["ate_b"]) if a is not None and b is not None]
+        both = _ate_pairs(r)
         mean = "–" if r.get("mean_ratio") is None else (
             f"**{r['mean_ratio']:.2f}x** ({statistics.mean(a for a, _ in both):.4f} → {statistics.mean(b for _, b in both):.4f} m)")
         kf = "–" if r.get("kf_ms_ratio") is None else f"{r['kf_ms_ratio']:.2f}x"

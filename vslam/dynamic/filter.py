@@ -119,16 +119,15 @@ class DynamicFilter:
         self._movers = [(t, b) for t, b in self._movers if self._t - t <= g.moving_memory_s + 1e-6]
         for box in self._boxes:
             inside = in_boxes(feats.raw, box[None], self.cfg.dilation_px, self.cfg.box_grow) & geo.tested
-            static = moving = False
+            judged = moving = False  # too few compared keypoints: neither verdict
             if inside.sum() >= g.static_min_points:
                 near = np.sort(self._depth[inside])[g.static_min_points - 1]
                 front = inside & (self._depth <= near + g.region_depth_m)
-                n, n_moving = int(front.sum()), int((front & geo.seeds).sum())
-                static, moving = n_moving <= g.static_max_moving * n, n_moving > g.static_max_moving * n
+                judged, moving = True, int((front & geo.seeds).sum()) > g.static_max_moving * int(front.sum())
             known = np.array([b for _, b in self._movers]).reshape(-1, 4)
             if moving or (len(known) and box_iou(box[None], known).max() >= 0.3):
                 self._movers.append((self._t, box))
-            elif static:
+            elif judged:
                 out.append(box)
         return np.array(out, np.float64).reshape(-1, 4)
 
