@@ -322,6 +322,26 @@ def test_lighting_change_varies_brightness_over_time() -> None:
     assert plain.lighting(10) == (1.0, 1.0)
 
 
+
+def test_poor_light_dims_and_adds_seeded_read_noise_to_both_cameras_only() -> None:
+    base = dict(n_frames=3, n_movers=0, **SMALL)
+    plain = SyntheticSequence(SyntheticConfig(**base), sensor="stereo")
+    dim = SyntheticSequence(SyntheticConfig(exposure=0.25, image_noise=2.0, **base), sensor="stereo")
+    a, b = plain.render(1), dim.render(1)
+    np.testing.assert_array_equal(a.depth, b.depth)
+    for clean, noisy in ((a.image, b.image), (a.right, b.right)):
+        err = noisy.astype(np.float64) - 0.25 * clean
+        interior = (clean > 8) & (clean < 250)  # away from clipping
+        assert abs(err[interior].mean()) < 0.1 and 1.8 < err[interior].std() < 2.2
+    assert not np.array_equal(b.image - np.round(0.25 * a.image.astype(np.float32)).astype(np.uint8),
+                              b.right - np.round(0.25 * a.right.astype(np.float32)).astype(np.uint8))
+    np.testing.assert_array_equal(b.image, dim.render(1).image)  # seeded per frame and camera: same on a re-render
+    assert not np.array_equal(dim.render(0).image.astype(int) - 0.25 * plain.render(0).image,
+                              b.image.astype(int) - 0.25 * a.image)  # a new draw every frame
+    for field, bad in (("exposure", 0.0), ("image_noise", -1.0)):
+        with pytest.raises(ConfigError, match=field):
+            SyntheticConfig(**{field: bad})
+
 @pytest.mark.parametrize("scene", ["room", "street"])
 def test_loop_returns_to_start_and_open_path_does_not(scene: str) -> None:
     for loop in (True, False):

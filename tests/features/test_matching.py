@@ -103,6 +103,23 @@ def test_orb_extractor_on_synthetic_image():
     assert len(empty) == 0
 
 
+
+def test_orb_poor_light_second_pass_fills_a_dim_image_and_leaves_a_bright_one():
+    seq = SyntheticSequence(SyntheticConfig(n_frames=1, width=320, height=240, fx=262.5, fy=262.5, n_movers=0), sensor="rgbd")
+    img, cam = next(iter(seq)).image, seq.calibration.cam0
+    dim = np.round(img.astype(np.float32) * 0.07).astype(np.uint8)  # 1/14 of the light, same scene
+    on, off = make_extractor(FeatureConfig(n_features=500)), make_extractor(FeatureConfig(n_features=500, fast_threshold_min=12))
+    bright_on, bright_off = on.detect(img, cam), off.detect(img, cam)
+    np.testing.assert_array_equal(bright_on.raw, bright_off.raw)  # enough corners at the normal threshold: one pass
+    np.testing.assert_array_equal(bright_on.desc, bright_off.desc)
+    dim_on, dim_off = on.detect(dim, cam), off.detect(dim, cam)
+    assert len(dim_off) < 0.5 * len(dim_on), (len(dim_off), len(dim_on))
+    assert len(dim_on) > 250
+    # most corners found at the normal threshold are still there (the lower one passes them too; a few lose the
+    # non-maximum suppression to a new neighbour or their cell's bucket)
+    d = np.linalg.norm(dim_off.raw[:, None] - dim_on.raw[None], axis=2).min(axis=1)
+    assert np.mean(d < 0.5) > 0.75
+
 def _flip_bits(desc, n, rng):
     """Copy of (N,32) uint8 descriptors with n distinct bits flipped per row."""
     out = desc.copy()

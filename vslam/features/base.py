@@ -24,6 +24,12 @@ class FeatureConfig:
     scale_factor: float = 1.2  # image pyramid step between octaves
     n_levels: int = 8
     fast_threshold: int = 12  # FAST corner threshold (OpenCV's default 20 starves low-contrast images)
+    # Poor light: when fewer than n_features corners pass fast_threshold, detection runs again at this lower
+    # threshold and bucketing (strongest first in each cell) fills the cells that had none (ORB-SLAM's
+    # iniThFAST / minThFAST, per image instead of per cell). Synthetic corridor at 1/5 exposure + read noise
+    # (bench corridor-dim-*): 146 corners a frame at 12, points-only tracking lost on 25 % of the frames, ATE
+    # 0.26 m; see BENCHMARKS.md for the rows with it. >= fast_threshold: off.
+    fast_threshold_min: int = 5
     oversample: float = 3.0  # detect this many times n_features, then bucket
     grid_cols: int = 16
     grid_rows: int = 12

@@ -53,11 +53,20 @@ class OrbExtractor:
             nfeatures=int(cfg.n_features * cfg.oversample), scaleFactor=cfg.scale_factor, nlevels=cfg.n_levels,
             edgeThreshold=19, patchSize=31, fastThreshold=cfg.fast_threshold,
         )
+        self.orb_low = None  # FeatureConfig.fast_threshold_min: the second pass on a poor image
+        if 0 < cfg.fast_threshold_min < cfg.fast_threshold:
+            self.orb_low = cv2.ORB_create(
+                nfeatures=int(cfg.n_features * cfg.oversample), scaleFactor=cfg.scale_factor, nlevels=cfg.n_levels,
+                edgeThreshold=19, patchSize=31, fastThreshold=cfg.fast_threshold_min,
+            )
 
     def detect(self, image: np.ndarray, camera: PinholeCamera, mask: np.ndarray | None = None) -> Features:
         gray = _gray(image)
         m = None if mask is None else (~mask).astype(np.uint8) * 255  # mask: True where features are NOT wanted
         kps = self.orb.detect(gray, m)
+        if self.orb_low is not None and len(kps) < self.cfg.n_features:
+            # every corner of the first pass passes the lower threshold too; the cap keeps the strongest
+            kps = self.orb_low.detect(gray, m)
         empty = Features.empty(scale_factor=self.cfg.scale_factor)
         if not kps:
             return empty

@@ -52,6 +52,7 @@ class SyntheticRender:
 
 def default_name(cfg: SyntheticConfig) -> str:
     flags = "".join(f"_{f}" for f in ("loop", "low_texture", "lighting_change") if getattr(cfg, f))
+    flags += "_poor_light" if cfg.exposure != 1.0 or cfg.image_noise > 0 else ""
     return f"synthetic_{cfg.scene}{flags}_seed{cfg.seed}"
 
 
@@ -186,16 +187,28 @@ class SyntheticSequence(Sequence):
         tau = float(self._tau[i])
         left = self._renderer.render(T, tau, movers)
         lut = self._lighting_lut(i)
-        image = self._blurred(i, cv2.LUT(left.image, lut) if lut is not None else left.image)
+        image = self._sensor(i, 0, self._blurred(i, cv2.LUT(left.image, lut) if lut is not None else left.image))
         right_img = None
         if right:
             view = self._renderer.render(T @ self.T_cam0_cam1, tau, movers)
-            right_img = self._blurred(i, cv2.LUT(view.image, lut) if lut is not None else view.image)
+            right_img = self._sensor(i, 1, self._blurred(i, cv2.LUT(view.image, lut) if lut is not None else view.image))
         boxes, ids = boxes_from_ids(left.obj, len(self.scene.movers))
         return SyntheticRender(image, left.depth, right_img, left.obj > 0, boxes, ids, T)
 
     def _blurred(self, i: int, image: np.ndarray) -> np.ndarray:
         return cv2.GaussianBlur(image, (0, 0), self.cfg.blur_sigma) if self._blur[i] else image
+
+    def _sensor(self, i: int, cam: int, image: np.ndarray) -> np.ndarray:
+        """Exposure and read noise (``SyntheticConfig.exposure`` / ``image_noise``); the same frame and camera
+        always get the same noise, whatever order frames are rendered in."""
+        cfg = self.cfg
+        if cfg.exposure == 1.0 and cfg.image_noise == 0.0:
+            return image
+        out = image.astype(np.float32) * np.float32(cfg.exposure)
+        if cfg.image_noise > 0:
+            rng = np.random.default_rng([cfg.seed, 5, i, cam])  # stream 5: sensor noise
+            out += rng.standard_normal(out.shape, dtype=np.float32) * np.float32(cfg.image_noise)
+        return np.clip(np.round(out), 0, 255).astype(np.uint8)
 
     def lighting(self, i: int) -> tuple[float, float]:
         """(gain, gamma) applied to frame i: out = 255 * gain * (in / 255) ** gamma; (1, 1) without lighting_change."""
