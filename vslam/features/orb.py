@@ -64,7 +64,7 @@ class OrbExtractor:
         gray = _gray(image)
         m = None if mask is None else (~mask).astype(np.uint8) * 255  # mask: True where features are NOT wanted
         kps = self.orb.detect(gray, m)
-        if self.orb_low is not None and len(kps) < self.cfg.n_features:
+        if self.orb_low is not None and len(kps) < self.cfg.fast_retry_below * self.cfg.n_features:
             # every corner of the first pass passes the lower threshold too; the cap keeps the strongest
             kps = self.orb_low.detect(gray, m)
         empty = Features.empty(scale_factor=self.cfg.scale_factor)
