@@ -151,7 +151,11 @@ def align(assoc: Association, method: str) -> tuple[Alignment, PoseTrajectory3D,
         R, t, s = est.align(gt, correct_scale=(method == "sim3"))
     except EvoException as e:
         # Umeyama fails on degenerate point sets (all positions equal or collinear-rank-deficient).
-        raise EvalError(f"cannot align the estimate to the ground truth ({method}): {e}") from None
+        pos = np.asarray(est.positions_xyz)
+        hint = ""
+        if len(pos) and np.ptp(pos, axis=0).max() < 1e-9:  # a run that never initialised writes one pose throughout
+            hint = f"; all {len(pos)} estimated positions are the same point (was any frame tracked? see stats.csv)"
+        raise EvalError(f"cannot align the estimate to the ground truth ({method}): {e}{hint}") from None
     return Alignment(method, np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64), float(s)), gt, est
 
 

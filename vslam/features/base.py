@@ -24,15 +24,20 @@ class FeatureConfig:
     scale_factor: float = 1.2  # image pyramid step between octaves
     n_levels: int = 8
     fast_threshold: int = 12  # FAST corner threshold (OpenCV's default 20 starves low-contrast images)
-    # Poor light: when fewer than fast_retry_below x n_features corners pass fast_threshold, detection runs
+    # Poor light: when fewer than fast_retry_below x n_features corners pass fast_threshold on a low-contrast
+    # image (5th to 95th intensity percentile less than low_contrast_spread grey levels apart), detection runs
     # again at fast_threshold_min and bucketing (strongest first in each cell) fills the cells that had none
     # (ORB-SLAM's iniThFAST / minThFAST, per image instead of per cell). Synthetic corridor at 1/5 exposure +
-    # read noise (bench corridor-dim-rgbd): 146 corners a frame at 12, points-only tracking lost on 25 % of the
-    # frames, ATE 0.26 m -> 0.0066 m with the second pass. Not on every image short of n_features: on the plain
-    # corridor (~1190 corners at 12) it gave ATE 0.0051 -> 0.0044 m but 34 -> 63 keyframes and 19.7 -> 8.5
-    # frames/s. fast_threshold_min >= fast_threshold: off.
+    # read noise (bench corridor-dim-rgbd, spread ~15): 146 corners a frame at 12, points-only tracking lost on
+    # 25 % of the frames, ATE 0.26 m -> 0.0066 m with the second pass. Not on every image short of corners: on
+    # the plain corridor (~1190 corners at 12) it gave ATE 0.0051 -> 0.0044 m but 34 -> 63 keyframes and 19.7 ->
+    # 8.5 frames/s; and a blurred image (few corners at full contrast, spread 160 on the blurred room) gets
+    # displaced ones: five sigma-8 blurred frames were "tracked" 80-94 mm off instead of predicted 4-13 mm off.
+    # Bright images spread 160-240 (TUM, KITTI, EuRoC, synthetic room), the plain corridor 56-77.
+    # fast_threshold_min >= fast_threshold: off.
     fast_threshold_min: int = 5
     fast_retry_below: float = 0.5
+    low_contrast_spread: float = 50.0
     oversample: float = 3.0  # detect this many times n_features, then bucket
     grid_cols: int = 16
     grid_rows: int = 12

@@ -60,11 +60,17 @@ class OrbExtractor:
                 edgeThreshold=19, patchSize=31, fastThreshold=cfg.fast_threshold_min,
             )
 
+    def _dim(self, gray: np.ndarray) -> bool:
+        """Low contrast (``FeatureConfig.low_contrast_spread``): few corners because the light is poor, not
+        because the image is blurred or plain."""
+        p5, p95 = np.percentile(gray[::4, ::4], [5, 95])
+        return bool(p95 - p5 < self.cfg.low_contrast_spread)
+
     def detect(self, image: np.ndarray, camera: PinholeCamera, mask: np.ndarray | None = None) -> Features:
         gray = _gray(image)
         m = None if mask is None else (~mask).astype(np.uint8) * 255  # mask: True where features are NOT wanted
         kps = self.orb.detect(gray, m)
-        if self.orb_low is not None and len(kps) < self.cfg.fast_retry_below * self.cfg.n_features:
+        if self.orb_low is not None and len(kps) < self.cfg.fast_retry_below * self.cfg.n_features and self._dim(gray):
             # every corner of the first pass passes the lower threshold too; the cap keeps the strongest
             kps = self.orb_low.detect(gray, m)
         empty = Features.empty(scale_factor=self.cfg.scale_factor)
