@@ -105,3 +105,34 @@ def test_depth_fit_recovers_a_line_on_a_surface_and_rejects_one_across_a_depth_e
     np.testing.assert_allclose(s * pl.normalize(L[0]), truth, atol=2e-2)  # depth sampled at rounded pixels
     np.testing.assert_allclose(ends[0], np.stack(on) @ T[:3, :3].T + T[:3, 3], atol=3e-2)
     assert np.isnan(L[1:]).all()
+
+
+def test_depth_lines_keep_creases_and_drop_occluding_contours():
+    """``reject_contours``: a wall-floor crease (two surfaces meeting at the segment) makes a line; the outline
+    of a near object in front of a far wall (a silhouette: no fixed 3-D line) does not -- it does with the check
+    off, as a line on the near side."""
+    import dataclasses
+
+    from vslam.data.types import PinholeCamera
+    from vslam.features.lines import LineConfig
+
+    cam = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
+    v, u = np.mgrid[0:480, 0:640].astype(np.float64)
+    yn = (v - 240.0) / 500.0
+    # crease: a wall at z = 4 above row 315, below it the floor y = 0.6 (camera y down), meeting the wall there
+    crease = np.where(v < 315, 4.0, 0.6 / np.maximum(yn, 1e-6))
+    # contour: a box at 1.5 m covering columns 200-399 in front of a wall at 4 m
+    contour = np.where((u >= 200) & (u < 400) & (v >= 100) & (v < 400), 1.5, 4.0)
+    T = np.eye(4)
+    seg = np.array([[250.0, 315.0, 450.0, 315.0]])  # along the crease / ...
+    edge = np.array([[400.0, 150.0, 400.0, 350.0]])  # ... along the box's right outline
+    for on in (True, False):
+        ls = LineSlam.__new__(LineSlam)
+        ls.cam, ls.cfg = cam, dataclasses.replace(LineConfig(), reject_contours=on)
+        ok_c, _, ends_c = ls.fit_from_depth(seg, seg, crease.astype(np.float32), T)
+        assert ok_c.tolist() == [True]
+        np.testing.assert_allclose(ends_c[0][:, 2], 3.9, atol=0.11)  # the nearer side, the floor 2 px down
+        ok_e, L_e, ends = ls.fit_from_depth(edge, edge, contour.astype(np.float32), T)
+        assert ok_e.tolist() == [not on]
+        if not on:  # the near side's depth: the silhouette placed on the box
+            np.testing.assert_allclose(ends[0][:, 2], 1.5, atol=1e-6)

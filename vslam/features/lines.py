@@ -53,6 +53,13 @@ class LineConfig:
     # crease lines (wall/floor) that carry the corridor. Measured ATE off / on: TUM teddy 0.0080 / 0.0062 m
     # (points only 0.0060), corridor 0.0051 / 0.0090 m (points only 0.0087).
     surface_only: bool = False
+    # the same without losing creases: each side's depth (2 and 4 px off the segment) extrapolated linearly to
+    # the segment; a crease's two surfaces meet there, an occluding contour's do not (sides without depth: not
+    # judged). Chosen on TUM teddy with lines at ORB budgets 1000 / 2000 (points only 0.0043 / 0.0074 m): ATE
+    # 0.0042 / 0.0064 -> 0.0042 / 0.0062 m; then on the bench budgets 1200 / 1500 / 1800 (points only 0.0043 /
+    # 0.0044 / 0.0054): 0.0043 / 0.0042 / 0.0072 -> 0.0045 / 0.0039 / 0.0056 m; corridor seeds 0-3 unchanged
+    # within 0.1 mm (2026-12-03)
+    reject_contours: bool = True
     # most-observed map lines put into one local BA; the line share of BA time scales with it. Synthetic
     # corridor, ATE 120 / 300 frames: 150 -> 3.41 mm / 7.1 mm, 60 -> 3.29 / 5.1 mm, 40 -> - / 7.4 mm (points
     # only 4.41 / 8.7 mm); BA CPU time with / without lines on the same problems: 60 -> 1.58x, 40 -> 1.45x
