@@ -322,7 +322,6 @@ def test_lighting_change_varies_brightness_over_time() -> None:
     assert plain.lighting(10) == (1.0, 1.0)
 
 
-
 def test_poor_light_dims_and_adds_seeded_read_noise_to_both_cameras_only() -> None:
     base = dict(n_frames=3, n_movers=0, **SMALL)
     plain = SyntheticSequence(SyntheticConfig(**base), sensor="stereo")
@@ -341,6 +340,7 @@ def test_poor_light_dims_and_adds_seeded_read_noise_to_both_cameras_only() -> No
     for field, bad in (("exposure", 0.0), ("image_noise", -1.0)):
         with pytest.raises(ConfigError, match=field):
             SyntheticConfig(**{field: bad})
+
 
 @pytest.mark.parametrize("scene", ["room", "street"])
 def test_loop_returns_to_start_and_open_path_does_not(scene: str) -> None:

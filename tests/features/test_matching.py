@@ -104,7 +104,6 @@ def test_orb_extractor_on_synthetic_image():
     assert len(empty) == 0
 
 
-
 def test_orb_poor_light_second_pass_fills_a_dim_image_and_leaves_a_bright_one():
     seq = SyntheticSequence(SyntheticConfig(n_frames=1, width=320, height=240, fx=262.5, fy=262.5, n_movers=0), sensor="rgbd")
     img, cam = next(iter(seq)).image, seq.calibration.cam0
@@ -125,6 +124,7 @@ def test_orb_poor_light_second_pass_fills_a_dim_image_and_leaves_a_bright_one():
     blur_on, blur_off = on.detect(blur, cam), off.detect(blur, cam)
     assert len(blur_off) < 250
     np.testing.assert_array_equal(blur_on.raw, blur_off.raw)
+
 
 def _flip_bits(desc, n, rng):
     """Copy of (N,32) uint8 descriptors with n distinct bits flipped per row."""
