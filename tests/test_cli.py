@@ -44,3 +44,21 @@ def test_console_script_exit_code(tmp_path):
                        capture_output=True, text=True)
     assert r.returncode == 2
     assert "Traceback" not in r.stderr and r.stderr.count("\n") == 1
+
+
+def test_synth_writes_a_poor_light_corridor(tmp_path, capsys):
+    """`vslam synth` reaches every scene and SyntheticConfig field: a dim, noisy corridor in the TUM layout."""
+    import cv2
+    import numpy as np
+
+    out = tmp_path / "seq"
+    assert main(["synth", str(out), "--scene", "corridor", "--frames", "3", "--set", "width=160", "--set", "height=120",
+                 "--set", "fx=131.25", "--set", "fy=131.25", "--set", "n_movers=0", "--set", "exposure=0.2",
+                 "--set", "image_noise=2"]) == 0
+    capsys.readouterr()
+    pngs = sorted((out / "rgbd" / "rgb").glob("*.png"))  # the TUM layout (mav0/: the ASL one)
+    assert len(pngs) == 3
+    img = cv2.imread(str(pngs[0]), cv2.IMREAD_GRAYSCALE).astype(float)
+    assert img.mean() < 0.3 * 170 and img.std() > 1.0  # walls ~170 grey at full light; read noise on top
+    assert main(["synth", str(tmp_path / "bad"), "--set", "exposure=0"]) == 2
+    assert "exposure" in capsys.readouterr().err

@@ -183,7 +183,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--config", "-c", help="YAML with SyntheticConfig fields (or a pipeline config)")
     s.add_argument("--frames", type=int)
     s.add_argument("--seed", type=int)
-    s.add_argument("--scene", choices=["room", "street"])
+    s.add_argument("--scene", choices=["room", "street", "corridor"])
     s.add_argument("--set", action="append", metavar="KEY=VALUE")
     s.set_defaults(fn=cmd_synth)
 
