@@ -42,6 +42,12 @@ def bucket(xy: np.ndarray, response: np.ndarray, shape: tuple[int, int], n: int,
     return np.sort(pick)
 
 
+def orb_detector(cfg: FeatureConfig, nfeatures: int, fast_threshold: int) -> cv2.ORB:
+    """OpenCV ORB with the project's pyramid and patch settings (extractor passes, vocabulary training)."""
+    return cv2.ORB_create(nfeatures=nfeatures, scaleFactor=cfg.scale_factor, nlevels=cfg.n_levels, edgeThreshold=19,
+                          patchSize=31, fastThreshold=fast_threshold)
+
+
 class OrbExtractor:
     """ORB keypoints + 256-bit descriptors with grid bucketing."""
 
@@ -49,16 +55,11 @@ class OrbExtractor:
 
     def __init__(self, cfg: FeatureConfig = FeatureConfig()):
         self.cfg = cfg
-        self.orb = cv2.ORB_create(
-            nfeatures=int(cfg.n_features * cfg.oversample), scaleFactor=cfg.scale_factor, nlevels=cfg.n_levels,
-            edgeThreshold=19, patchSize=31, fastThreshold=cfg.fast_threshold,
-        )
+        n = int(cfg.n_features * cfg.oversample)
+        self.orb = orb_detector(cfg, n, cfg.fast_threshold)
         self.orb_low = None  # FeatureConfig.fast_threshold_min: the second pass on a poor image
         if 0 < cfg.fast_threshold_min < cfg.fast_threshold:
-            self.orb_low = cv2.ORB_create(
-                nfeatures=int(cfg.n_features * cfg.oversample), scaleFactor=cfg.scale_factor, nlevels=cfg.n_levels,
-                edgeThreshold=19, patchSize=31, fastThreshold=cfg.fast_threshold_min,
-            )
+            self.orb_low = orb_detector(cfg, n, cfg.fast_threshold_min)
 
     def _dim(self, gray: np.ndarray) -> bool:
         """Low contrast (``FeatureConfig.low_contrast_spread``): few corners because the light is poor, not

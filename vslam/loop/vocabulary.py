@@ -131,6 +131,7 @@ def main(argv: list[str] | None = None) -> None:
     import cv2
 
     from vslam.features import FeatureConfig
+    from vslam.features.orb import orb_detector
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("images", type=Path, help="folder searched recursively for .jpg/.png")
@@ -140,8 +141,7 @@ def main(argv: list[str] | None = None) -> None:
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO)
     fc = FeatureConfig()
-    orb = cv2.ORB_create(nfeatures=fc.n_features, scaleFactor=fc.scale_factor, nlevels=fc.n_levels,
-                         edgeThreshold=19, patchSize=31, fastThreshold=fc.fast_threshold)
+    orb = orb_detector(fc, fc.n_features, fc.fast_threshold)
     files = sorted(f for f in a.images.rglob("*") if f.suffix.lower() in (".jpg", ".png"))
     descs = []
     for f in files:
