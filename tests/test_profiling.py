@@ -30,4 +30,9 @@ def test_profile_of_a_tiny_run(tmp_path, capsys, ahead):
     assert 0.9 * st["total"]["mean_ms"] < parts <= st["total"]["mean_ms"] * 1.001  # the stages make up the frame
     assert st["features"]["mean_ms"] > 0
     assert abs(st["total"]["share"] - 1.0) < 1e-9
-    assert format_profile(profile(out / "stats.csv")).splitlines()[0].startswith("stage")
+    table = format_profile(profile(out / "stats.csv"))
+    assert table.splitlines()[0].startswith("stage")
+    # the frame rate is that of the whole frame, the wait for the frame (and its features) included
+    wall = st["total"]["mean_ms"] + st["decode"]["mean_ms"]
+    assert p["wall_ms_per_frame"] == pytest.approx(wall)
+    assert f"{1e3 / wall:.1f} frames/s" in table.splitlines()[-1]
