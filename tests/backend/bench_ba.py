@@ -2,7 +2,8 @@
 
 Pins BLAS/OpenMP to one thread before numpy is imported, runs each case ``--repeat`` times and prints
 the median (and min) wall time. Also times the alternatives the backend decided against: fixed keyframes
-held by NonlinearEqualityPose3, and pose-only refinement as a GTSAM graph.
+held by NonlinearEqualityPose3, and pose-only refinement as a GTSAM graph; and local BA's numpy solver
+(``BackendConfig.solver = "numpy"``).
 """
 
 from __future__ import annotations
@@ -42,9 +43,10 @@ def bench_local_ba(repeat: int, n_kf: int, obs_per_kf: int, views: int, outliers
     prob.obs_ur += rng.normal(0.0, 0.5, prob.obs_ur.shape)
     bad = S.add_outliers(rng, prob.obs_uv, prob.obs_ur, outliers)
     p = S.perturb(rng, prob)
-    for label, sigma in (("prior 1e-6 (default)", 1e-6), ("NonlinearEquality", None)):
+    for label, sigma, solver in (("prior 1e-6 (default)", 1e-6, "gtsam"), ("NonlinearEquality", None, "gtsam"),
+                                 ("numpy Schur solver", 1e-6, "numpy")):
         fx.FIXED_WITH_PRIOR_SIGMA = sigma
-        runs = [local_bundle_adjustment(p, S.CAM) for _ in range(repeat)]
+        runs = [local_bundle_adjustment(p, S.CAM, BackendConfig(solver=solver)) for _ in range(repeat)]
         r = runs[-1]
         terr = max(S.pose_error(r.poses[k], poses[k])[0] for k in r.poses)
         stages = {k: np.median([x.ms[k] for x in runs]) for k in ("build", "optimize", "classify")}
