@@ -98,12 +98,17 @@ def _best_pairs_binary(valid: np.ndarray, ki: np.ndarray, pt_desc: np.ndarray, k
     distances by 64-bit popcount, and each row's best / second best from one partition of the key
     distance * (N+1) + target (integer distances, so ties still break by target index)."""
     n = len(kp_desc)
-    kic = np.where(valid, ki, 0)
     a = np.ascontiguousarray(pt_desc).view(np.uint64)
     b = np.ascontiguousarray(kp_desc).view(np.uint64)
-    dist = np.bitwise_count(a[:, None, :] ^ b[kic]).sum(axis=2, dtype=np.int64)
     big = np.iinfo(np.int64).max
-    key = np.where(valid, dist * (n + 1) + kic, big)
+    pi, ci = np.nonzero(valid)  # distances of the candidates within the radius only (~20 % at 4 px)
+    kv = ki[pi, ci].astype(np.int64)
+    cnt = np.bitwise_count(a[pi] ^ b[kv]).astype(np.int64)
+    dist = cnt[:, 0]
+    for col in range(1, cnt.shape[1]):  # a few columns: faster than a reduction over a short axis
+        dist = dist + cnt[:, col]
+    key = np.full(valid.shape, big, np.int64)
+    key[pi, ci] = dist * (n + 1) + kv
     two = np.partition(key, 1, axis=1)[:, :2] if key.shape[1] > 1 else np.concatenate([key, np.full_like(key, big)], axis=1)
     has = two[:, 0] != big
     best_q = np.flatnonzero(has)
