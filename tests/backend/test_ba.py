@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import gtsam
 import numpy as np
 import pytest
@@ -12,6 +14,17 @@ from vslam.backend.ba import BackendConfig, BAProblem, StereoCamera, local_bundl
 from vslam.backend.factors import FactorBuilder, L, X, pose3
 from vslam.backend.projection import backproject_cam, measurement_matrix, project_stereo, whitened_sq_errors
 from vslam.geometry.se3 import inv_T, make_T, so3_exp
+
+_local_ba = local_bundle_adjustment
+
+
+@pytest.fixture(autouse=True, params=["gtsam", "numpy"])
+def solver(request, monkeypatch):
+    """Every local BA test runs with both solvers (GTSAM still solves line and global BA)."""
+    def run(problem, camera, cfg=BackendConfig()):
+        return _local_ba(problem, camera, dataclasses.replace(cfg, solver=request.param))
+    monkeypatch.setitem(globals(), "local_bundle_adjustment", run)
+    return request.param
 
 
 def _max_errors(result, poses, pts, skip_pts=()):

@@ -13,6 +13,7 @@ from vslam.backend import ba as ba_mod
 from vslam.backend.ba import BackendConfig, local_bundle_adjustment
 
 NUMPY = BackendConfig(solver="numpy")
+GTSAM = BackendConfig(solver="gtsam")
 
 
 def _noisy_window(seed: int, stereo_frac: float, outliers: float = 0.05):
@@ -30,7 +31,7 @@ def _noisy_window(seed: int, stereo_frac: float, outliers: float = 0.05):
 def test_numpy_solver_matches_gtsam(stereo_frac, disparity_sigma):
     _, _, p = _noisy_window(3, stereo_frac)
     cam = dataclasses.replace(S.CAM, disparity_sigma=disparity_sigma)
-    g = local_bundle_adjustment(p, cam, BackendConfig())
+    g = local_bundle_adjustment(p, cam, GTSAM)
     n = local_bundle_adjustment(p, cam, NUMPY)
     assert set(n.poses) == set(g.poses) and n.iterations == g.iterations
     for k in g.poses:
@@ -92,7 +93,7 @@ def test_numpy_solver_hands_large_windows_to_gtsam(monkeypatch):
     _, _, p = _noisy_window(5, 0.5)
     monkeypatch.setattr(ba_mod, "NUMPY_MAX_POSES", 4)  # 8 keyframes: over the limit
     n = local_bundle_adjustment(p, S.CAM, NUMPY)
-    g = local_bundle_adjustment(p, S.CAM, BackendConfig())
+    g = local_bundle_adjustment(p, S.CAM, GTSAM)
     assert all(np.array_equal(n.poses[k], g.poses[k]) for k in g.poses)  # the same code ran
     monkeypatch.setattr(ba_mod, "NUMPY_MAX_POSES", 24)
     assert any(not np.array_equal(local_bundle_adjustment(p, S.CAM, NUMPY).poses[k], g.poses[k]) for k in g.poses)
