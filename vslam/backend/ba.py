@@ -28,7 +28,7 @@ Local BA (``local_bundle_adjustment``), after ORB-SLAM2 ``Optimizer::LocalBundle
    With ``BAProblem.lines`` (issue 6) the window's line observations join both LM rounds as one
    structureless factor (``line_ba`` / ``line_window``); ``BAResult.lines`` / ``line_inliers`` come back.
 3. *Optimise*: Levenberg-Marquardt, ``max_iterations`` (lambda settings in ``factors.lm_params``). With
-   ``BackendConfig.solver = "numpy"`` (the default) steps 2-5 run on the same cost in ``vslam.backend.schur`` instead of a
+   ``BackendConfig.solver = "numpy"`` steps 2-5 run on the same cost in ``vslam.backend.schur`` instead of a
    GTSAM graph (same estimate to the LM tolerance, ~0.5x the time on TUM windows).
 4. *Classify*: chi2 test on each observation's unrobust whitened squared error (chi2_mono / chi2_stereo).
 5. *Refine*: the outlier factors are dropped and LM runs ``refine_iterations`` more (ORB-SLAM2: 10) from
@@ -133,12 +133,15 @@ class BackendConfig:
     # value, as before this shortcut. 60-frame tight loop, ATE at 0 / 50 / 100: 0.062 / 0.031 / 0.031 m (seed 1:
     # 0.177 / 0.110 / 0.110 m); TUM teddy BA time the same at 0 and 50.
     closed_form_min_tied: int = 50
-    # Local BA's solver: "numpy" (``vslam.backend.schur``: points eliminated by a dense Schur complement over the
-    # window's free poses) or "gtsam" (the factor graph of ``factors``); the same cost and LM settings, the same
-    # estimates to the LM tolerance. Windows with line landmarks or more than NUMPY_MAX_POSES keyframes (global
-    # BA) go to GTSAM either way. numpy since 2026-12-03: local BA 133 -> 86 ms per keyframe on TUM teddy, 60 ->
-    # 27 ms/frame amortised on KITTI 07 mono, ATE unchanged (bench rows ``*-gtsam-ba``).
-    solver: Literal["gtsam", "numpy"] = "numpy"
+    # Local BA's solver: "gtsam" (the factor graph of ``factors``) or "numpy" (``vslam.backend.schur``: points
+    # eliminated by a dense Schur complement over the window's free poses); the same cost and LM settings, the same
+    # estimates to the LM tolerance per window. Windows with line landmarks or more than NUMPY_MAX_POSES keyframes
+    # (global BA) go to GTSAM either way. numpy: local BA 133 -> 86 ms per keyframe on TUM teddy, 60 -> 27
+    # ms/frame on KITTI 07 mono. Not the default: over the whole bench (2026-12-03) most rows kept their ATE to
+    # 0.1 mm, but the chaotic ones moved, some for the worse (TUM with walkers and the detector 0.0186 -> 0.0305 m,
+    # monocular VIO room 0.034 -> 0.063 m, KITTI mono lines 0.291 -> 0.295 m; better: TUM walkers with the
+    # geometric check alone 0.211 -> 0.187 m, dim stereo corridor 0.0079 -> 0.0075 m).
+    solver: Literal["gtsam", "numpy"] = "gtsam"
     pose_rounds: int = 4  # pose-only: optimise / classify rounds (ORB-SLAM2: 4)
     pose_iterations: int = 10  # pose-only: LM iterations per round (ORB-SLAM2: 10)
 
