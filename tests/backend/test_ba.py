@@ -20,7 +20,7 @@ _local_ba = local_bundle_adjustment
 
 @pytest.fixture(autouse=True, params=["gtsam", "numpy"])
 def solver(request, monkeypatch):
-    """Every local BA test runs with both solvers (GTSAM still solves line and global BA)."""
+    """Every local BA test runs with both solvers: the GTSAM graph (the default) and the opt-in numpy Schur solver."""
     def run(problem, camera, cfg=BackendConfig()):
         return _local_ba(problem, camera, dataclasses.replace(cfg, solver=request.param))
     monkeypatch.setitem(globals(), "local_bundle_adjustment", run)
