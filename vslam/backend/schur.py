@@ -118,9 +118,10 @@ class _Problem:
         fi = slot[ik]
         self.m_free = np.flatnonzero(fi >= 0)
         self.f = fi[self.m_free]
-        self.by_pose = self.m_free[np.argsort(self.f, kind="stable")]
-        self.pose_starts = np.flatnonzero(np.r_[True, np.diff(np.sort(self.f)) != 0])
-        self.pose_slots = np.unique(self.f)
+        order = np.argsort(self.f, kind="stable")
+        self.by_pose, fs = self.m_free[order], self.f[order]
+        self.pose_starts = np.flatnonzero(np.r_[True, fs[1:] != fs[:-1]]) if fs.size else np.zeros(0, np.int64)
+        self.pose_slots = fs[self.pose_starts]
         pairs = self.lp[self.m_free] * max(self.n_free, 1) + self.f
         self.unique_pairs = np.unique(pairs).size == pairs.size  # a point seen once per keyframe (the map's rule)
         # the GTSAM factors' error behind the camera: 2 fx per row, whitened, with a zero Jacobian
