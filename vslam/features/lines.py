@@ -40,11 +40,14 @@ class LineConfig:
     match_angle_deg: float = 8.0  # oriented angle difference allowed in matching
     match_radius_px: float = 12.0  # end points of a candidate within this distance of the predicted line
     min_overlap: float = 0.3  # overlap along the line / shorter segment
-    # std of an end-point distance, pixels. Swept 1 / 2 / 4 (vslam bench --sweep, 2026-12-01): corridor ATE
-    # 0.0040 / 0.0040 / 0.0047 m, corridor with lighting change 0.0051 / 0.0047 / 0.0053 m, TUM teddy
-    # 0.0056 / 0.0042 / 0.0046 m (points only 0.0042): at 1 px the segments' end points (LSD, blur) were
-    # trusted more than they deserve next to the points' now better-modelled depth
-    pixel_sigma: float = 2.0
+    # std of an end-point distance, pixels (pose-only tracking and local BA). Chosen on validation runs the
+    # bench rows do not use (2026-12-03; points only / 2 px / 1 px): RGB-D corridor seeds 10-13 mean ATE
+    # 0.0056 / 0.0051 / 0.0043 m, stereo corridor seeds 10-13 0.0089 / 0.0083 / 0.0075 m, TUM teddy at ORB
+    # budgets 1000 / 2000 0.0043, 0.0074 / 0.0042, 0.0062 / 0.0040, 0.0055 m, KITTI 07 mono at 1600 / 2400
+    # 0.2800, 0.3225 / 0.2819, 0.3009 / 0.2694, 0.3087 m. What 1 px buys is the pose-only weight: BA at 1 px
+    # with tracking at 2 px (weight 0.25) gave the corridor seeds 0-3 0.0055 m, BA at 2 px with tracking at
+    # 1 px (weight 4) 0.0043 m. (On 2026-12-01, before later tracking changes, 1 px measured worse on TUM.)
+    pixel_sigma: float = 1.0
     min_depth_samples: int = 5  # RGB-D/stereo line creation: valid depth samples needed along the segment
     depth_fit_m: float = 0.03  # ... max deviation of those samples from the 3-D line (+ 1 % of depth)
     max_new_lines: int = 60  # line landmarks created per keyframe
