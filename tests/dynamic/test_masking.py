@@ -97,6 +97,53 @@ def test_slam_never_tracks_or_maps_masked_keypoints():
         assert in_mask(np.array(obs), mask).any() == expect_masked
 
 
+def _masked_fraction(raw: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    t = np.linspace(0.0, 1.0, 9)[None, :, None]
+    pts = raw[:, None, :2] * (1.0 - t) + raw[:, None, 2:] * t
+    return in_mask(pts.reshape(-1, 2), mask).reshape(len(raw), -1).mean(axis=1)
+
+
+def test_segments_on_dynamic_objects_are_dropped():
+    """A segment goes when all nine of its samples are masked (it lies on the object): inside -> dropped, outside
+    -> kept, partly inside (a static edge ending at the person, or crossing the background of a loose box) ->
+    kept; one sample pixel outside the mask is enough to keep it."""
+    mask = np.zeros((48, 64), bool)
+    mask[10:30, 20:40] = True  # cols 20..39
+    frame = Frame(0, 0.0, np.zeros((48, 64), np.uint8), dynamic_mask=mask)
+    filt = DynamicFilter(DynamicConfig(enabled=True, source="gt_mask", dilation_px=0), CAM)
+    filt.keep(frame, _grid_feats())
+    segs = np.array([[22.0, 12.0, 37.0, 27.0],   # inside
+                     [2.0, 2.0, 60.0, 5.0],      # outside
+                     [0.0, 20.0, 24.0, 20.0],    # samples at x = 0, 3, ..., 24: 21 and 24 inside (2 of 9)
+                     [0.0, 20.0, 64.0, 20.0],    # x = 0, 8, ..., 64: 24, 32 inside (2 of 9) -> kept
+                     [12.0, 20.0, 36.0, 20.0],   # x = 12, 15, ..., 36: 21..36 inside (6 of 9) -> kept
+                     [20.0, 12.0, 39.0, 29.0],   # the mask's diagonal, end points on its last pixels -> dropped
+                     [20.0, 12.0, 40.0, 29.0]])  # ... one column further: the end sample is outside -> kept
+    frac = _masked_fraction(segs, mask)
+    np.testing.assert_allclose(frac, [1.0, 0.0, 2 / 9, 2 / 9, 6 / 9, 1.0, 8 / 9])
+    np.testing.assert_array_equal(filt.keep_segments(frame, segs, segs), [False, True, True, True, True, False, True])
+    assert filt.keep_segments(frame, np.zeros((0, 4)), np.zeros((0, 4))).shape == (0,)
+
+
+def test_slam_never_tracks_or_maps_masked_segments():
+    """With lines on, the segments a frame hands to line tracking and mapping are the unmasked ones; with the
+    filter off the same frames do use segments under the mask."""
+    seq = SyntheticSequence(SyntheticConfig(n_frames=6, width=320, height=240, fx=262.5, fy=262.5, n_movers=0))
+    mask = np.zeros((240, 320), bool)
+    mask[:, :110] = True
+    frames = [dataclasses.replace(fr, dynamic_mask=mask) for fr in seq]
+    for enabled in (True, False):
+        cfg = SlamConfig(dynamic=DynamicConfig(enabled=enabled, source="gt_mask", dilation_px=0),
+                         lines=dataclasses.replace(SlamConfig().lines, enabled=True))
+        st = SlamTracker(seq.calibration, "rgbd", cfg)
+        worst = 0.0
+        for fr in frames:
+            assert st.track(fr).tracked
+            assert len(st._line_feats) > 5
+            worst = max(worst, float(_masked_fraction(st._line_feats.raw, mask).max()))
+        assert (worst < 1.0) == enabled
+
+
 def test_detector_source_masks_only_confident_boxes_of_listed_classes():
     from vslam.dynamic.detector import Detections
 

@@ -100,6 +100,9 @@ class LineFeatures:
     def __len__(self) -> int:
         return len(self.segs)
 
+    def subset(self, idx: np.ndarray) -> LineFeatures:
+        return LineFeatures(self.raw[idx], self.segs[idx], self.desc[idx], self.length[idx])
+
     @staticmethod
     def empty(dim: int) -> LineFeatures:
         return LineFeatures(np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, dim), np.float32), np.zeros(0))
