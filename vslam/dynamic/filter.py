@@ -63,7 +63,7 @@ class DynamicFilter:
 
     def dynamic_source(self, frame: Frame, feats: Features, boxes: np.ndarray | None = None) -> np.ndarray:
         """(N,) bool: keypoints on dynamic objects according to ``cfg.source`` (dilated by ``dilation_px``);
-        ``boxes``: this frame's ``detect`` if computed ahead. Sets this frame's regions (``on_dynamic``)."""
+        ``boxes``: this frame's ``detect`` if computed ahead. Sets this frame's regions (``_on_dynamic``)."""
         c = self.cfg
         self._region_mask, self._region_boxes, self._region_grow = None, np.zeros((0, 4)), 0.0
         if c.source == "gt_mask":
@@ -81,9 +81,9 @@ class DynamicFilter:
             if len(self._static) and len(boxes):
                 boxes = boxes[box_iou(boxes, self._static).max(axis=1) < 0.5]
             self._region_boxes, self._region_grow = boxes, c.box_grow
-        return self.on_dynamic(feats.raw)
+        return self._on_dynamic(feats.raw)
 
-    def on_dynamic(self, raw_uv: np.ndarray) -> np.ndarray:
+    def _on_dynamic(self, raw_uv: np.ndarray) -> np.ndarray:
         """(N,) bool: raw pixels inside this frame's dynamic masks or boxes (as set by ``dynamic_source``)."""
         if self._region_mask is not None:
             return in_mask(raw_uv, self._region_mask)
@@ -102,20 +102,16 @@ class DynamicFilter:
         if n == 0:
             return np.ones(0, bool)
         t = np.linspace(0.0, 1.0, _SEGMENT_SAMPLES)[None, :, None]
-        pr = (raw[:, None, :2] * (1.0 - t) + raw[:, None, 2:] * t).reshape(-1, 2)
-        dyn = self.on_dynamic(pr)
+
+        def samples(segs: np.ndarray) -> np.ndarray:
+            segs = np.asarray(segs, dtype=np.float64).reshape(-1, 4)
+            return (segs[:, None, :2] * (1.0 - t) + segs[:, None, 2:] * t).reshape(-1, 2)
+
+        pr = samples(raw)
+        dyn = self._on_dynamic(pr)
         if self.geo is not None:
-            ideal = np.asarray(ideal, dtype=np.float64).reshape(-1, 4)
-            pi = (ideal[:, None, :2] * (1.0 - t) + ideal[:, None, 2:] * t).reshape(-1, 2)
-            z = np.full(len(pr), np.nan)
-            if frame.depth is not None:
-                h, w = frame.depth.shape[:2]
-                r = np.clip(np.rint(pr[:, 1]).astype(int), 0, h - 1)
-                c = np.clip(np.rint(pr[:, 0]).astype(int), 0, w - 1)
-                d = frame.depth[r, c].astype(np.float64)
-                g = self.cfg.geometric
-                z = np.where((d >= g.min_depth) & (d <= g.max_depth), d, np.nan)
-            dyn |= self.geo.in_region(pi, z)
+            z = self._depth_at(frame, pr)[0] if frame.depth is not None else np.full(len(pr), np.nan)
+            dyn |= self.geo.in_region(samples(ideal), z)
         return ~dyn.reshape(n, -1).all(axis=1)
 
     def keep(self, frame: Frame, feats: Features, boxes: np.ndarray | None = None) -> np.ndarray:
@@ -177,14 +173,20 @@ class DynamicFilter:
         if frame.depth is None or self.geo is None:
             return np.full(len(feats), np.nan)
         g = self.cfg.geometric
-        r = np.clip(np.rint(feats.raw[:, 1]).astype(int), 0, frame.depth.shape[0] - 1)
-        c = np.clip(np.rint(feats.raw[:, 0]).astype(int), 0, frame.depth.shape[1] - 1)
-        z = frame.depth[r, c].astype(np.float64)
-        ok = (z >= g.min_depth) & (z <= g.max_depth)
+        z, r, c = self._depth_at(frame, feats.raw)
         if g.edge_m > 0:  # on a depth edge the keypoint's depth may be the background's
             d = frame.depth.astype(np.float32)
             k = np.ones((5, 5), np.uint8)
             hi = cv2.dilate(d, k)  # holes (0) raise neither bound: Kinect holes are everywhere
             lo = cv2.erode(np.where(d > 0, d, np.float32(1e6)), k)
-            ok &= (hi[r, c] - lo[r, c]) <= g.edge_m + g.rel * z
-        return np.where(ok, z, np.nan)
+            z = np.where((hi[r, c] - lo[r, c]) <= g.edge_m + g.rel * z, z, np.nan)
+        return z
+
+    def _depth_at(self, frame: Frame, raw_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(N,) metres of the frame's depth map at the rounded raw pixels, NaN outside the check's depth range;
+        with the (N,) pixel rows and columns read."""
+        g = self.cfg.geometric
+        r = np.clip(np.rint(raw_uv[:, 1]).astype(int), 0, frame.depth.shape[0] - 1)
+        c = np.clip(np.rint(raw_uv[:, 0]).astype(int), 0, frame.depth.shape[1] - 1)
+        z = frame.depth[r, c].astype(np.float64)
+        return np.where((z >= g.min_depth) & (z <= g.max_depth), z, np.nan), r, c

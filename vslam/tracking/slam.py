@@ -190,15 +190,14 @@ class SlamTracker:
             self.vio.add_imu(frame)
         if front is None:
             front = self.frontend(frame)
-        feats, t_dyn = front.feats, time.perf_counter()
-        if self.dynamic is not None:  # issue 5: keypoints on moving objects reach neither tracking nor mapping
+        feats, lines, t_dyn = front.feats, front.lines, time.perf_counter()
+        if self.dynamic is not None:  # issue 5: keypoints and segments on moving objects reach neither tracking nor mapping
             feats = feats.subset(np.flatnonzero(self.dynamic.keep(frame, feats, front.boxes)))
+            if lines is not None and len(lines):
+                lines = lines.subset(np.flatnonzero(self.dynamic.keep_segments(frame, lines.raw, lines.segs)))
         ms_dynamic = (time.perf_counter() - t_dyn) * 1e3
         if self.lines is not None:
-            self._line_feats, self._line_ids = front.lines, None
-            if self.dynamic is not None and front.lines is not None and len(front.lines):  # segments on movers
-                keep = self.dynamic.keep_segments(frame, front.lines.raw, front.lines.segs)
-                self._line_feats = front.lines.subset(np.flatnonzero(keep))
+            self._line_feats, self._line_ids = lines, None
             if self.mono_init is not None and self.ref_kf is None:  # the initialiser's reference may be any recent frame
                 self._pre_init_lines[frame.index] = self._line_feats
                 self._pre_init_lines = dict(list(self._pre_init_lines.items())[-(self.mono_init.max_tries + 2):])
