@@ -207,3 +207,32 @@ def test_detector_boxes_are_remembered_for_box_memory_s():
     assert kept == [[False, True], [False, True], [True, True]]
     none = DynamicFilter(DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.0), CAM, detector=Blink())
     assert [none.keep(Frame(i, t, np.zeros((48, 64), np.uint8)), f).tolist() for i, t in enumerate((0.0, 0.1))] == [[False, True], [True, True]]
+
+
+def test_detect_every_runs_the_detector_on_every_nth_frame_and_holds_its_boxes_between():
+    """detect_every = 3: the network sees frames 0, 3, 6 only; frames 1-2 and 4-5 mask the last detection's boxes
+    even without box memory, and the prefetch thread's ``detect`` gives None for them (nothing to carry)."""
+    from vslam.dynamic.detector import Detections
+
+    class Walker:  # a person box that moves 20 px right per call
+        def __init__(self):
+            self.images: list[int] = []
+
+        def detect(self, image):
+            self.images.append(int(image[0, 0]))
+            x = 20.0 * (len(self.images) - 1)
+            return Detections(np.array([[x, 0.0, x + 10.0, 20.0]]), np.array([0.9]), np.array([0]), np.array(["person"], dtype=object))
+
+    uv = np.array([[5.0, 10.0], [25.0, 10.0], [45.0, 10.0]])
+    f = Features(uv, uv, np.zeros((3, 32), np.uint8), np.zeros(3), np.zeros(3))
+    cfg = DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.0, detect_every=3)
+    det = Walker()
+    flt = DynamicFilter(cfg, CAM, detector=det)
+    frames = [Frame(i, 0.1 * i, np.full((48, 64), i, np.uint8)) for i in range(7)]
+    kept = [flt.keep(fr, f).tolist() for fr in frames]
+    assert det.images == [0, 3, 6]
+    assert kept == [[False, True, True]] * 3 + [[True, False, True]] * 3 + [[True, True, False]]
+    ahead = DynamicFilter(cfg, CAM, detector=Walker())
+    assert [ahead.detect(fr) is None for fr in frames] == [False, True, True, False, True, True, False]
+    with pytest.raises(ConfigError, match="detect_every"):
+        DynamicConfig(detect_every=0)

@@ -51,11 +51,12 @@ class DynamicFilter:
         self._region_grow = 0.0
 
     def detect(self, frame: Frame) -> np.ndarray | None:
-        """(K,4) boxes of the configured classes at ``score_threshold`` (``source=detector``; None otherwise).
+        """(K,4) boxes of the configured classes at ``score_threshold`` (``source=detector``; None otherwise, and
+        on the frames ``detect_every`` skips).
 
-        The image alone decides them and nothing here is stateful, so one other thread may run this ahead of
-        ``keep`` (the SLAM front end's prefetch thread does: the network then costs tracking nothing)."""
-        if self.cfg.source != "detector":
+        The image and its index alone decide them and nothing here is stateful, so one other thread may run this
+        ahead of ``keep`` (the SLAM front end's prefetch thread does: the network then costs tracking nothing)."""
+        if self.cfg.source != "detector" or frame.index % self.cfg.detect_every:
             return None
         det = self.detector.detect(frame.image)  # type: ignore[union-attr]
         sel = (det.scores >= self.cfg.score_threshold) & np.isin(det.class_names, list(self.cfg.classes))
@@ -72,7 +73,9 @@ class DynamicFilter:
             elif frame.boxes is not None:
                 self._region_boxes = np.asarray(frame.boxes, dtype=np.float64).reshape(-1, 4)
         elif c.source == "detector":
-            self._boxes = self.detect(frame) if boxes is None else boxes
+            fresh = self.detect(frame) if boxes is None else boxes
+            if fresh is not None:  # else a frame between detections: the last detection's boxes hold
+                self._boxes = fresh
             self._t = frame.timestamp
             self._recent.append((frame.timestamp, self._boxes))
             while frame.timestamp - self._recent[0][0] > c.box_memory_s + 1e-6:
