@@ -179,11 +179,11 @@ def test_keypoints_on_depth_edges_are_not_checked():
     f = Features(uv, uv, np.zeros((5, 32), np.uint8), np.zeros(5), np.zeros(5))
     frame = Frame(0, 0.0, np.zeros((48, 64), np.uint8), depth=depth)
     on = DynamicFilter(DynamicConfig(enabled=True, source="none", geometric=GeometricConfig(enabled=True, edge_m=0.05)), CAM)
-    z = on._keypoint_depth(frame, f)
+    z = on._check_depth(frame, f.raw)
     np.testing.assert_array_equal(np.isnan(z), [False, True, True, False, False])
     np.testing.assert_allclose(z[[0, 3, 4]], [2.0, 3.0, 2.0])
     off = DynamicFilter(DynamicConfig(enabled=True, source="none", geometric=GeometricConfig(enabled=True)), CAM)
-    np.testing.assert_allclose(off._keypoint_depth(frame, f)[:4], [2.0, 2.0, 3.0, 3.0])
+    np.testing.assert_allclose(off._check_depth(frame, f.raw)[:4], [2.0, 2.0, 3.0, 3.0])
 
 
 def test_detector_boxes_are_remembered_for_box_memory_s():
@@ -236,3 +236,23 @@ def test_detect_every_runs_the_detector_on_every_nth_frame_and_holds_its_boxes_b
     assert [ahead.detect(fr) is None for fr in frames] == [False, True, True, False, True, True, False]
     with pytest.raises(ConfigError, match="detect_every"):
         DynamicConfig(detect_every=0)
+
+
+def test_segment_samples_read_depth_as_keypoints_do():
+    """keep_segments reads its samples' depth by the keypoints' rules: with geometric.edge_m a segment running
+    along a depth edge (a walker's outline) has no depth there, so next to a flagged mover it is masked whatever
+    the pixel reads; without edge_m its samples read the background 1 m behind the mover and it stays."""
+    from vslam.dynamic import GeometricConfig
+
+    depth = np.full((48, 64), 2.0, np.float32)
+    depth[:, 32:] = 3.0  # the mover at 2 m on the left, background at 3 m
+    frame = Frame(0, 0.0, np.zeros((48, 64), np.uint8), depth=depth)
+    seg = np.array([[32.0, 10.0, 32.0, 30.0]])  # along the edge, on its background side
+    kept = []
+    for edge_m in (0.05, 0.0):
+        geo = GeometricConfig(enabled=True, edge_m=edge_m)
+        filt = DynamicFilter(DynamicConfig(enabled=True, source="none", geometric=geo), CAM)
+        filt.keep(frame, _grid_feats())
+        filt.geo._region_uv, filt.geo._region_z = np.array([[28.0, 20.0]]), np.array([2.0])  # flagged last frame
+        kept.append(bool(filt.keep_segments(frame, seg, seg)[0]))
+    assert kept == [False, True]

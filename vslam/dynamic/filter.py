@@ -49,6 +49,7 @@ class DynamicFilter:
         self._region_mask: np.ndarray | None = None  # this frame's dynamic regions (``dynamic_source``)
         self._region_boxes = np.zeros((0, 4))
         self._region_grow = 0.0
+        self._span: tuple[tuple[int, float], np.ndarray] | None = None  # (frame key, ``_depth_span``)
 
     def detect(self, frame: Frame) -> np.ndarray | None:
         """(K,4) boxes of the configured classes at ``score_threshold`` (``source=detector``; None otherwise, and
@@ -113,8 +114,7 @@ class DynamicFilter:
         pr = samples(raw)
         dyn = self._on_dynamic(pr)
         if self.geo is not None:
-            z = self._depth_at(frame, pr)[0] if frame.depth is not None else np.full(len(pr), np.nan)
-            dyn |= self.geo.in_region(samples(ideal), z)
+            dyn |= self.geo.in_region(samples(ideal), self._check_depth(frame, pr))
         return ~dyn.reshape(n, -1).all(axis=1)
 
     def keep(self, frame: Frame, feats: Features, boxes: np.ndarray | None = None) -> np.ndarray:
@@ -122,7 +122,7 @@ class DynamicFilter:
         this frame's ``detect`` if computed ahead (else it runs here)."""
         dyn = self.dynamic_source(frame, feats, boxes)
         self._feats = feats
-        self._depth = self._keypoint_depth(frame, feats)
+        self._depth = self._check_depth(frame, feats.raw)
         if self.geo is not None:
             dyn |= self.geo.in_region(feats.uv, self._depth)
         self._kept = ~dyn
@@ -170,20 +170,30 @@ class DynamicFilter:
                 out.append(box)
         return np.array(out, np.float64).reshape(-1, 4)
 
-    def _keypoint_depth(self, frame: Frame, feats: Features) -> np.ndarray:
-        """(N,) metres at each keypoint from the frame's depth map (RGB-D); NaN without one (the geometric check
-        then has nothing to compare, stereo/mono are not covered yet)."""
+    def _check_depth(self, frame: Frame, raw_uv: np.ndarray) -> np.ndarray:
+        """(N,) metres at raw pixels (keypoints, segment samples) from the frame's depth map (RGB-D); NaN without
+        one (the geometric check then has nothing to compare, stereo/mono are not covered yet) and, with
+        ``geometric.edge_m``, on depth edges."""
         if frame.depth is None or self.geo is None:
-            return np.full(len(feats), np.nan)
+            return np.full(len(raw_uv), np.nan)
         g = self.cfg.geometric
-        z, r, c = self._depth_at(frame, feats.raw)
+        z, r, c = self._depth_at(frame, raw_uv)
         if g.edge_m > 0:  # on a depth edge the keypoint's depth may be the background's
+            span = self._depth_span(frame)
+            z = np.where(span[r, c] <= g.edge_m + g.rel * z, z, np.nan)
+        return z
+
+    def _depth_span(self, frame: Frame) -> np.ndarray:
+        """(H,W) max - min depth within 2 px of each pixel (holes, 0, left out: Kinect holes are everywhere); kept
+        for the frame, which asks again for its line segments."""
+        key = (frame.index, frame.timestamp)
+        if self._span is None or self._span[0] != key:
             d = frame.depth.astype(np.float32)
             k = np.ones((5, 5), np.uint8)
-            hi = cv2.dilate(d, k)  # holes (0) raise neither bound: Kinect holes are everywhere
+            hi = cv2.dilate(d, k)  # holes raise neither bound
             lo = cv2.erode(np.where(d > 0, d, np.float32(1e6)), k)
-            z = np.where((hi[r, c] - lo[r, c]) <= g.edge_m + g.rel * z, z, np.nan)
-        return z
+            self._span = (key, hi - lo)
+        return self._span[1]
 
     def _depth_at(self, frame: Frame, raw_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(N,) metres of the frame's depth map at the rounded raw pixels, NaN outside the check's depth range;
