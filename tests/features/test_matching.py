@@ -7,7 +7,7 @@ from vslam.data.synthetic import SyntheticConfig, SyntheticSequence
 from vslam.features import EXTRACTORS, FeatureConfig, make_extractor
 from scipy.spatial import cKDTree
 
-from vslam.features.matching import best_pairs, descriptor_rows, hamming_rows, match_by_projection, match_epipolar, match_mutual
+from vslam.features.matching import BITS_PER_L2, best_pairs, descriptor_rows, hamming_rows, match_by_projection, match_epipolar, match_mutual
 from vslam.geometry.se3 import inv_T, make_T, skew, so3_exp
 from vslam.features.orb import bucket
 
@@ -32,6 +32,25 @@ def test_mutual_matching_recovers_a_permutation():
     m = match_mutual(d1, d2)
     assert len(m) == 200
     assert np.array_equal(perm[m[:, 1]], m[:, 0])
+
+
+def test_float_mutual_matching_equals_the_brute_force_definition():
+    """Float descriptors (ConvPoint, SIFT: not unit length) from one matrix product: the same pairs as the
+    definition evaluated pair by pair (OpenCV's brute force matcher, used before), for each ratio / distance gate;
+    ties go to the lower index in both directions."""
+    rng = np.random.default_rng(7)
+    d2 = rng.standard_normal((300, 128)).astype(np.float32) * rng.uniform(0.5, 2.0, (300, 1)).astype(np.float32)
+    d1 = d2[rng.integers(0, 300, 500)] + 0.3 * rng.standard_normal((500, 128)).astype(np.float32)
+    bf = cv2.BFMatcher(cv2.NORM_L2)
+    fwd, bwd = bf.knnMatch(d1, d2, k=2), {m[0].queryIdx: m[0].trainIdx for m in bf.knnMatch(d2, d1, k=1)}
+    for ratio, max_bits in ((0.8, np.inf), (None, np.inf), (0.95, 300.0)):
+        want = [(m[0].queryIdx, m[0].trainIdx) for m in fwd if (ratio is None or m[0].distance < ratio * m[1].distance)
+                and m[0].distance * BITS_PER_L2 <= max_bits and bwd[m[0].trainIdx] == m[0].queryIdx]
+        got = match_mutual(d1, d2, ratio=ratio, max_dist=max_bits)
+        assert 0 < len(got) and got.tolist() == [list(p) for p in want]
+    same = np.ones((3, 4), np.float32)  # all distances tie: row 0 <-> column 0 only, no ratio test passes
+    assert match_mutual(same, same, ratio=None).tolist() == [[0, 0]]
+    assert len(match_mutual(same, same, ratio=0.99)) == 0
 
 
 def test_projection_matching_radius_threshold_and_uniqueness():

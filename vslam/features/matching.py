@@ -36,10 +36,9 @@ def match_mutual(d1: np.ndarray, d2: np.ndarray, ratio: float | None = 0.8, max_
     ``ratio`` is None: the feature benchmark scores the descriptor alone). ``max_dist`` in bits (module docstring)."""
     if len(d1) < 2 or len(d2) < 2:
         return np.zeros((0, 2), np.int64)
-    norm = cv2.NORM_HAMMING if d1.dtype == np.uint8 else cv2.NORM_L2
     if d1.dtype != np.uint8:
-        max_dist = max_dist / BITS_PER_L2
-    bf = cv2.BFMatcher(norm)
+        return _mutual_float(d1, d2, ratio, max_dist / BITS_PER_L2)
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
     fwd = bf.knnMatch(d1, d2, k=2)
     bwd = np.full(len(d2), -1, np.int64)
     for m in bf.knnMatch(d2, d1, k=1):
@@ -51,6 +50,34 @@ def match_mutual(d1: np.ndarray, d2: np.ndarray, ratio: float | None = 0.8, max_
         and bwd[m[0].trainIdx] == m[0].queryIdx
     ]
     return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+
+
+def _mutual_float(d1: np.ndarray, d2: np.ndarray, ratio: float | None, max_l2: float) -> np.ndarray:
+    """``match_mutual`` for float descriptors from one (N1,N2) matrix product, squared L2 = |a|^2 + |b|^2 - 2 a.b:
+    both directions read the same matrix (OpenCV's brute force matcher computes every distance once per
+    direction: ~2x slower at loop verification's 2500 x 1000 x 128). Ties go to the lower index."""
+    a = np.ascontiguousarray(d1, dtype=np.float32)
+    b = np.ascontiguousarray(d2, dtype=np.float32)
+    D = a @ b.T
+    D *= -2.0
+    D += np.einsum("ij,ij->i", a, a)[:, None]
+    D += np.einsum("ij,ij->i", b, b)[None, :]
+    r = np.arange(len(a))
+    j1 = D.argmin(axis=1)
+    d1st = D[r, j1].copy()
+    D[r, j1] = np.inf
+    d2nd = D[r, D.argmin(axis=1)]
+    D[r, j1] = d1st
+    # each column's nearest row, the lowest on ties (argmin down the columns is ~20x slower: strided)
+    rows, cols = np.nonzero(D == D.min(axis=0))
+    _, first = np.unique(cols, return_index=True)
+    bwd = np.full(len(b), -1, np.int64)
+    bwd[cols[first]] = rows[first]
+    best, second = np.sqrt(np.maximum(d1st, 0.0)), np.sqrt(np.maximum(d2nd, 0.0))
+    ok = (bwd[j1] == r) & (best <= max_l2)
+    if ratio is not None:
+        ok &= best < ratio * second
+    return np.stack([r[ok], j1[ok]], axis=1).astype(np.int64).reshape(-1, 2)
 
 
 def match_by_projection(
