@@ -54,8 +54,9 @@ def match_mutual(d1: np.ndarray, d2: np.ndarray, ratio: float | None = 0.8, max_
 
 def _mutual_float(d1: np.ndarray, d2: np.ndarray, ratio: float | None, max_l2: float) -> np.ndarray:
     """``match_mutual`` for float descriptors from one (N1,N2) matrix product, squared L2 = |a|^2 + |b|^2 - 2 a.b:
-    both directions read the same matrix (OpenCV's brute force matcher computes every distance once per
-    direction: ~2x slower at loop verification's 2500 x 1000 x 128). Ties go to the lower index."""
+    both directions read the same matrix (OpenCV's brute force matcher computes every distance once per direction:
+    ~100 vs ~21 ms at loop verification's 2500 x 1000 x 128 on 2 cores, ~21 vs ~3 ms at 300 x 900). Ties go to
+    the lower index."""
     a = np.ascontiguousarray(d1, dtype=np.float32)
     b = np.ascontiguousarray(d2, dtype=np.float32)
     D = a @ b.T
