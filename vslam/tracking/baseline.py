@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from vslam.data.types import Calibration, Frame, PinholeCamera, SensorKind
+from vslam.features.matching import match_mutual
 from vslam.geometry.se3 import inv_T, make_T
 
 log = logging.getLogger(__name__)
@@ -101,7 +102,6 @@ class FrameToFrameOdometry:
         self.cfg = cfg
         self.cam: PinholeCamera = calib.cam0
         self.orb = cv2.ORB_create(cfg.n_features)
-        self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         self.ref: _Ref | None = None
         self.T_world_cam = np.eye(4)
         self.velocity = np.eye(4)  # T_prev_cur of the last tracked step, for constant-velocity prediction
@@ -118,19 +118,6 @@ class FrameToFrameOdometry:
             return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 32), np.uint8)
         raw = np.array([k.pt for k in kps], dtype=np.float64)
         return raw, cam.undistort_points(raw), desc
-
-    def _match(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
-        """(M,2) index pairs: mutual nearest neighbours passing the ratio test."""
-        if len(d1) < 2 or len(d2) < 2:
-            return np.zeros((0, 2), np.int64)
-        fwd = self.matcher.knnMatch(d1, d2, k=2)
-        bwd = {m[0].queryIdx: m[0].trainIdx for m in self.matcher.knnMatch(d2, d1, k=1) if m}
-        pairs = [
-            (m[0].queryIdx, m[0].trainIdx)
-            for m in fwd
-            if len(m) == 2 and m[0].distance < self.cfg.ratio * m[1].distance and bwd.get(m[0].trainIdx) == m[0].queryIdx
-        ]
-        return np.array(pairs, dtype=np.int64).reshape(-1, 2)
 
     # -- 3-D points of a frame -------------------------------------------
     def _points_rgbd(self, frame: Frame, raw: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -151,7 +138,7 @@ class FrameToFrameOdometry:
         cam1 = self.calib.cam1
         assert cam1 is not None
         _, uv_r, desc_r = self._features(frame.right, cam1)
-        m = self._match(desc, desc_r)
+        m = match_mutual(desc, desc_r, ratio=self.cfg.ratio)
         if len(m) == 0:
             return pts
         T_1_0 = inv_T(self.calib.T_cam0_cam1)  # cam0 -> cam1
@@ -221,7 +208,7 @@ class FrameToFrameOdometry:
         if self.ref is None:
             est.tracked = len(uv) >= self.cfg.min_inliers
         else:
-            m = self._match(self.ref.desc, desc)
+            m = match_mutual(self.ref.desc, desc, ratio=self.cfg.ratio)
             est.n_matches = len(m)
             if self.sensor == "mono":
                 T_ref_cur, est.n_inliers = self._essential(self.ref.uv[m[:, 0]], uv[m[:, 1]])
