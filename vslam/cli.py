@@ -215,6 +215,11 @@ def build_parser() -> argparse.ArgumentParser:
     from vslam.features.cli import add_cli as add_eval_features_cli
 
     add_eval_features_cli(sub)
+    # `vslam quantize <model>`: int8 ranges of a network for CPU inference (vslam.quantize)
+    quantize_sub = sub.add_parser("quantize", help="calibrate int8 CPU inference of a network (keypoints)").add_subparsers(dest="model", required=True)
+    from vslam.features.cli import add_quantize_cli
+
+    add_quantize_cli(quantize_sub)
     from vslam.dynamic.composite import add_cli as add_make_dynamic_cli
 
     add_make_dynamic_cli(sub)

@@ -22,6 +22,26 @@ def test_eval_features_missing_weights_is_one_line(tmp_path, capsys):
     assert len(err) == 1 and "none.pt: ConvPoint weights not found" in err[0]
 
 
+def test_eval_features_unknown_method_is_one_line(capsys):
+    assert main(["eval-features", "--methods", "orb,superpoint"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "unknown feature method(s) superpoint" in err[0] and "convpoint-int8" in err[0]
+
+
+def test_quantize_keypoints_writes_ranges_beside_the_weights(tum_teddy, tmp_path, capsys):
+    import shutil
+
+    from vslam.features.convpoint import ConvPointInt8, default_weights, load_convpoint
+
+    w = tmp_path / "cp.pt"
+    shutil.copy(default_weights(), w)
+    assert main(["quantize", "keypoints", "--weights", str(w), "--per-source", "1"]) == 0
+    assert f"wrote {w}.int8.json" in capsys.readouterr().out
+    doc = json.loads((tmp_path / "cp.pt.int8.json").read_text())
+    assert doc["meta"]["per_source"] == 1 and doc["meta"]["images"] >= 2  # one image of each source present
+    assert isinstance(load_convpoint(w, int8=True), ConvPointInt8)
+
+
 def test_train_keypoints_toy_from_the_cli(tmp_path, capsys):
     assert main(["train", "keypoints", "--toy", "-o", str(tmp_path / "kp"), "--set", "threads=1"]) == 0
     assert (tmp_path / "kp" / "model.pt").is_file() and (tmp_path / "kp" / "log.jsonl").is_file()

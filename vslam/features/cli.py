@@ -13,10 +13,29 @@ def add_cli(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--keypoints", type=int, default=1000, help="keypoints per image and method")
     p.add_argument("--pairs", type=int, default=2, help="random homographies per held-out image")
     p.add_argument("--images", type=int, default=12, help="held-out images per source")
-    p.add_argument("--methods", default="orb,sift,convpoint")
+    p.add_argument("--methods", default="orb,sift,convpoint,convpoint-int8")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", "-o", help="write results.json and table.md here")
     p.set_defaults(fn=_cmd)
+
+
+def add_quantize_cli(quantize_sub: argparse._SubParsersAction) -> None:
+    p = quantize_sub.add_parser("keypoints", help="int8 activation ranges of ConvPoint from training images (features.int8)")
+    p.add_argument("--weights", default="", help="ConvPoint weights (default models/convpoint_v1.pt); ranges go beside them")
+    p.add_argument("--per-source", type=int, default=8, help="training images per source (COCO128, TUM, KITTI, EuRoC)")
+    p.set_defaults(fn=_cmd_quantize)
+
+
+def _cmd_quantize(args: argparse.Namespace) -> int:
+    import torch
+
+    from vslam.features.convpoint import calibrate_convpoint, default_weights
+    from vslam.paths import data_root
+
+    torch.set_num_threads(2)
+    out = calibrate_convpoint(args.weights or default_weights(), data_root(), args.per_source)
+    print(f"wrote {out}")
+    return 0
 
 
 def _cmd(args: argparse.Namespace) -> int:

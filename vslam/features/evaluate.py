@@ -246,13 +246,21 @@ def time_methods(methods: dict[str, Method], image: np.ndarray, repeat: int = 10
 
 
 def run_feature_bench(weights: str | Path, root: Path, cfg: FeatureBenchConfig = FeatureBenchConfig(),
-                      methods: tuple[str, ...] = ("orb", "sift", "convpoint")) -> dict:
-    """The full evaluation of ``weights`` against ORB and SIFT, one run, one set of pairs."""
+                      methods: tuple[str, ...] = ("orb", "sift", "convpoint", "convpoint-int8")) -> dict:
+    """The full evaluation of ``weights`` against ORB and SIFT, one run, one set of pairs. "convpoint-int8": the
+    same network quantised for the CPU (``FeatureConfig.int8``; its ranges must be beside the weights)."""
+    import torch
+
     from vslam.features.convpoint import load_convpoint
 
-    model = load_convpoint(weights) if "convpoint" in methods else None
     make = {"orb": lambda: orb_method(cfg.n_keypoints), "sift": lambda: sift_method(cfg.n_keypoints),
-            "convpoint": lambda: convpoint_method(model, cfg.n_keypoints)}
+            "convpoint": lambda: convpoint_method(load_convpoint(weights), cfg.n_keypoints),
+            "convpoint-int8": lambda: convpoint_method(load_convpoint(weights, int8=True), cfg.n_keypoints, torch.device("cpu"))}
+    unknown = [m for m in methods if m not in make]
+    if unknown:
+        from vslam.errors import ConfigError
+
+        raise ConfigError(f"unknown feature method(s) {', '.join(unknown)} (known: {', '.join(make)})")
     fns = {m: make[m]() for m in methods}
     images = held_out_images(root, cfg.max_images_per_source)
     if not any(images.values()):
