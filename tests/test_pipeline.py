@@ -71,3 +71,21 @@ def test_no_output_lost_on_crash(tmp_path):
         Pipeline(_cfg(tmp_path)).run(seq)
     assert len(read_trajectory(tmp_path / "trajectory.tum.txt")) == 12
     assert len((tmp_path / "stats.csv").read_text().splitlines()) == 13  # header + 12 rows
+
+
+def test_networks_get_the_cores_the_tracking_thread_leaves_and_threads_are_restored(tmp_path, monkeypatch):
+    import torch
+
+    import vslam.pipeline as pl
+
+    seq = SyntheticSequence(SyntheticConfig(n_frames=3, width=160, height=120, n_movers=0), sensor="rgbd")
+    seen: list[int] = []
+    before = torch.get_num_threads()
+    monkeypatch.setattr(pl, "_cpus", lambda: 3)
+    for front_thread, threads, want in ((True, 0, 2), (False, 0, 3), (True, 1, 1)):
+        seen.clear()
+        cfg = PipelineConfig.load(None, {"tracker": "slam", "output": {"dir": str(tmp_path), "report": False},
+                                         "slam": {"frontend_thread": front_thread, "torch_threads": threads}})
+        Pipeline(cfg).run(seq, progress=lambda k, n: seen.append(torch.get_num_threads()))
+        assert seen == [want] * 3
+        assert torch.get_num_threads() == before

@@ -9,9 +9,12 @@ local BA), both behind the same ``track(frame) -> FrameEstimate`` and
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import logging
+import os
 import queue
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -164,6 +167,30 @@ def _fmt_stat(col: str, v: object) -> str:
     return str(v)
 
 
+def _cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))  # the CPUs this process may run on (containers, taskset)
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+@contextlib.contextmanager
+def torch_threads(cfg: SlamConfig | None) -> Iterator[None]:
+    """torch's intra-op thread count for a run (``SlamConfig.torch_threads``), restored afterwards; nothing when
+    the run loaded no network (torch not imported)."""
+    torch = sys.modules.get("torch")
+    if cfg is None or torch is None:
+        yield
+        return
+    n = cfg.torch_threads or max(1, _cpus() - (1 if cfg.frontend_thread else 0))
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 class Pipeline:
     """``Pipeline(config).run(sequence)``: the Python API behind ``vslam run``."""
 
@@ -200,7 +227,7 @@ class Pipeline:
         paths["stats"] = stats_path
         t_start = time.perf_counter()
         try:
-            with open(stats_path, "w", newline="") as fstats:
+            with torch_threads(cfg.slam if cfg.tracker == "slam" else None), open(stats_path, "w", newline="") as fstats:
                 sw = csv.writer(fstats)
                 sw.writerow(STAT_COLUMNS)
                 ahead = isinstance(odo, SlamTracker) and cfg.slam.frontend_thread

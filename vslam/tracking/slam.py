@@ -61,6 +61,12 @@ class SlamConfig:
     # computes them for the next frames on its prefetch thread while this one is tracked (OpenCV / torch release
     # the GIL, so it uses a second core). Same numbers either way; off = everything on the tracking thread.
     frontend_thread: bool = True
+    # Intra-op threads of the networks (torch) while ``Pipeline.run`` lasts; 0 = the CPUs this process may use,
+    # less one for the tracking thread when the front end has its own. torch's default (every core) put three
+    # busy threads on the 2-core VM: the learned pipeline on the TUM walkers composite ran at 4.4 / 4.5 frames/s,
+    # with one torch thread 5.4 / 5.0 (alternating runs, 2026-12-03; the detector 93 -> 60 ms a frame).
+    # The thread count changes float summation order, hence trajectories a little (ATE 0.0174 vs 0.0175 m there).
+    torch_threads: int = 0
 
 
 @dataclass
