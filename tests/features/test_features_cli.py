@@ -42,6 +42,22 @@ def test_quantize_keypoints_writes_ranges_beside_the_weights(tum_teddy, tmp_path
     assert isinstance(load_convpoint(w, int8=True), ConvPointInt8)
 
 
+def test_without_data_quantize_and_eval_features_say_so_in_one_line(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("VSLAM_DATA", str(tmp_path / "nothing"))
+    for argv in (["quantize", "keypoints", "--weights", str(_copy_of_shipped(tmp_path))], ["eval-features", "--methods", "orb"]):
+        assert main(argv) == 2
+        err = [ln for ln in capsys.readouterr().err.strip().splitlines() if ln.startswith("vslam: error")]
+        assert len(err) == 1 and "nothing: no " in err[0] and "set VSLAM_DATA" in err[0]
+
+
+def _copy_of_shipped(tmp_path):
+    import shutil
+
+    from vslam.features.convpoint import default_weights
+
+    return shutil.copy(default_weights(), tmp_path / "cp.pt")
+
+
 def test_train_keypoints_toy_from_the_cli(tmp_path, capsys):
     assert main(["train", "keypoints", "--toy", "-o", str(tmp_path / "kp"), "--set", "threads=1"]) == 0
     assert (tmp_path / "kp" / "model.pt").is_file() and (tmp_path / "kp" / "log.jsonl").is_file()

@@ -119,7 +119,7 @@ def calibrate_convpoint(weights: str | Path, root: Path, per_source: int = 8) ->
 
     inputs = calibration_inputs(root, per_source)
     if not inputs:
-        raise DatasetError(f"{root}: no training images to calibrate on (COCO128 / TUM / KITTI / EuRoC subsets; set VSLAM_DATA)")
+        raise DatasetError(root, "no training images to calibrate on (COCO128 / TUM / KITTI / EuRoC subsets; set VSLAM_DATA)")
     qparams = calibrate(_Core(load_convpoint(weights)).eval(), inputs, INT8_FLOAT_MODULES)
     meta = {"images": len(inputs), "per_source": per_source, "split": "training images (features.train_keypoints)",
             "float_modules": list(INT8_FLOAT_MODULES), "torch": torch.__version__}

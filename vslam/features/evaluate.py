@@ -266,7 +266,7 @@ def run_feature_bench(weights: str | Path, root: Path, cfg: FeatureBenchConfig =
     if not any(images.values()):
         from vslam.errors import DatasetError
 
-        raise DatasetError(f"{root}: no held-out images found (COCO128 / TUM / KITTI / EuRoC subsets; set VSLAM_DATA)")
+        raise DatasetError(root, "no held-out images found (COCO128 / TUM / KITTI / EuRoC subsets; set VSLAM_DATA)")
     res = {"homography": homography_benchmark(fns, images, cfg), "epipolar": epipolar_benchmark(fns, root, cfg),
            "images": {k: len(v) for k, v in images.items()}, "n_keypoints": cfg.n_keypoints}
     vga = next((im for _, ims in images.items() for _, im in ims if im.shape == (480, 640)), None)
