@@ -29,12 +29,9 @@ def test_eval_features_unknown_method_is_one_line(capsys):
 
 
 def test_quantize_keypoints_writes_ranges_beside_the_weights(tum_teddy, tmp_path, capsys):
-    import shutil
+    from vslam.features.convpoint import ConvPointInt8, load_convpoint
 
-    from vslam.features.convpoint import ConvPointInt8, default_weights, load_convpoint
-
-    w = tmp_path / "cp.pt"
-    shutil.copy(default_weights(), w)
+    w = _copy_of_shipped(tmp_path)
     assert main(["quantize", "keypoints", "--weights", str(w), "--per-source", "1"]) == 0
     assert f"wrote {w}.int8.json" in capsys.readouterr().out
     doc = json.loads((tmp_path / "cp.pt.int8.json").read_text())

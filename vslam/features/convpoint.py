@@ -257,30 +257,37 @@ def save_convpoint(model: ConvPointNet, path: str | Path, meta: dict | None = No
 def load_convpoint(path: str | Path, int8: bool = False) -> ConvPointNet | ConvPointInt8:
     """Weights from a local file (never the network); eval mode, CPU, NHWC (the layout detect_batch feeds).
     ``int8``: the quantised network with the ranges stored beside the weights (``vslam quantize keypoints``)."""
+    model = _read_weights(path)
+    return _int8_from_file(model, path) if int8 else model.to(memory_format=torch.channels_last)
+
+
+def _read_weights(path: str | Path) -> ConvPointNet:
+    """The float network of a weights file, in the layout it was saved in (quantised from that layout)."""
     from vslam.checkpoint import load_weights
 
-    model = load_weights(path, "ConvPoint", "vslam train keypoints", lambda c: ConvPointNet(
+    return load_weights(path, "ConvPoint", "vslam train keypoints", lambda c: ConvPointNet(
         ConvPointConfig(tuple(int(v) for v in c["channels"]), int(c["desc_dim"]))))
-    if int8:
-        from vslam.quantize import load_qparams
 
-        return int8_convpoint(model, load_qparams(path, INT8_COMMAND)[0])
-    return model.to(memory_format=torch.channels_last)
+
+def _int8_from_file(net: ConvPointNet, path: str | Path) -> ConvPointInt8:
+    from vslam.quantize import load_qparams
+
+    return int8_convpoint(net, load_qparams(path, INT8_COMMAND)[0])
 
 
 def _load_extractor_model(path: str | Path, int8: bool) -> ConvPointNet | ConvPointInt8:
     """The int8 network when asked and its ranges fit the weights, else (one warning why) the float one: weights
-    trained here without `vslam quantize keypoints` still run, only slower."""
+    trained here without `vslam quantize keypoints` still run, only slower. Weights that cannot be read are an
+    error either way."""
     from vslam.errors import ConfigError
 
+    model = _read_weights(path)
     if int8:
         try:
-            return load_convpoint(path, int8=True)
+            return _int8_from_file(model, path)  # ``build`` quantises a copy: ``model`` stays float
         except ConfigError as e:
-            if not Path(path).exists():
-                raise
             log.warning("features.int8: %s; running the float network", e)
-    return load_convpoint(path)
+    return model.to(memory_format=torch.channels_last)
 
 
 def default_weights() -> Path:
