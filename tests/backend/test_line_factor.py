@@ -263,3 +263,69 @@ def test_window_factor_linearises_an_accepted_point_without_solving_its_lines_ag
     assert np.array_equal(Aa, Ab) and np.array_equal(ba_, bb)
     fa.error(v0)  # the anchor moved at the linearisation: a new point is solved again
     assert solves == [wa, wb, wa]
+
+
+def _end_inverse_depths(lp: LineProblem, poses, segs) -> np.ndarray:
+    """(M,2) true inverse depths of each observation's end points, read along its (noisy) end-point rays."""
+    from vslam.geometry.se3 import inv_T
+
+    L = np.array([lp.lines[j] for j in lp.obs_line.tolist()])
+    Lc = np.array([pl.transform(L[i], inv_T(poses[k])) for i, k in enumerate(lp.obs_kf.tolist())])
+    return pl.inverse_depth(Lc[:, :3], Lc[:, 3:], pl.end_rays(segs, K_L))[0]
+
+
+def test_window_factor_with_end_point_depths_matches_its_cost_and_numeric_gradient():
+    """RGB-D line observations carry two inverse-depth rows: the window's error is the Huber cost of all four
+    rows, its gradient matches central differences, and a line seen twice now has pose information."""
+    from vslam.backend.line_window import LineWindow
+
+    rng = np.random.default_rng(8)
+    poses, _, lp = _line_scene(rng, n_lines=8)
+    segs = lp.obs_seg + rng.normal(0, 0.5, lp.obs_seg.shape)
+    rho = _end_inverse_depths(lp, poses, segs) * rng.uniform(0.99, 1.01, (len(segs), 2))
+    rho[::7, 1] = np.nan  # some end points without depth
+    w = CAM.fx * 0.08 / 0.05
+    lines = np.array([lp.lines[j] for j in sorted(lp.lines)])
+    win = LineWindow(lines, lp.obs_line, lp.obs_kf, segs, [X(k) for k in range(len(poses))], K_L, 1.0, 1.345,
+                     rho=rho, depth_weight=w)
+    assert win.k == 4 and win.dim == 8 * (4 * len(poses) - 4)
+    two = LineWindow(lines[:1], np.zeros(2, np.int64), np.arange(2), segs[:2], [X(0), X(1)], K_L, 1.0, None)
+    two_d = LineWindow(lines[:1], np.zeros(2, np.int64), np.arange(2), segs[:2], [X(0), X(1)], K_L, 1.0, None,
+                       rho=rho[:2], depth_weight=w)
+    assert two.factor() is None and two_d.dim == 4
+    f = win.factor()
+    v = gtsam.Values()
+    for k, T in enumerate(poses):
+        v.insert(X(k), gtsam.Pose3(S.perturb_pose(rng, T, 0.005, 0.2)))
+    for _ in range(12):
+        f.linearize(v)
+    A, b = f.linearize(v).jacobian()
+    grad = A.T @ (-b)
+    e = win.whitened_sq_errors(np.array([v.atPose3(X(k)).matrix() for k in range(len(poses))]))
+    a = np.sqrt(e)
+    assert f.error(v) == pytest.approx(np.sum(np.where(a <= 1.345, 0.5 * e, 1.345 * a - 0.5 * 1.345**2)), rel=1e-6)
+    no_depth = LineWindow(lines, lp.obs_line, lp.obs_kf, segs, [X(k) for k in range(len(poses))], K_L, 1.0, 1.345)
+    no_depth.U, no_depth.w = win.U, win.w
+    assert e.sum() > 1.5 * no_depth.whitened_sq_errors(np.array([v.atPose3(X(k)).matrix() for k in range(len(poses))])).sum()
+    num = _numeric_pose_gradient(f, v, len(poses))
+    assert np.abs(grad - num).max() <= 1e-3 * np.abs(grad).max(), np.abs(grad - num).max()
+
+
+def test_ba_with_end_point_depths_flags_a_wrong_depth_and_line_chi2_counts_its_rows():
+    rng = np.random.default_rng(9)
+    poses, prob, lp = _line_scene(rng, n_lines=20)
+    prob.fixed = {0, 1}
+    rho = _end_inverse_depths(lp, poses, lp.obs_seg)
+    rho[5] *= 1.2  # one observation's depth 20 % off
+    rho[6, 0] = np.nan
+    prob.lines = dataclasses.replace(lp, obs_rho=rho, depth_weight=CAM.fx * 0.08 / 0.05)
+    res = local_bundle_adjustment(prob, CAM, BackendConfig())
+    assert not res.line_inliers[5] and res.line_inliers.sum() == len(rho) - 1
+    # 95 % of chi2(2 + end points with a depth)
+    at9, at7 = prob.lines.inliers(np.full(len(rho), 9.0)), prob.lines.inliers(np.full(len(rho), 7.0))
+    assert not at9[6] and at9.sum() == len(rho) - 1 and at7.all()
+    assert not dataclasses.replace(prob.lines, obs_rho=None).inliers(np.full(len(rho), 7.0)).any()
+    with pytest.raises(ValueError, match="window"):
+        from vslam.backend.line_ba import line_terms
+
+        line_terms(dataclasses.replace(prob.lines, mode="landmark"), set(range(len(poses))), K_L, 1.345)

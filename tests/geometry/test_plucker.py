@@ -135,3 +135,27 @@ def test_line_through_origin_has_valid_orthonormal_form():
     U, w = pl.to_orthonormal(np.array([0.0, 0.0, 0.0, 0.0, 0.0, 2.0]))
     np.testing.assert_allclose(U.T @ U, np.eye(3), atol=1e-12)
     assert w[0] == pytest.approx(0.0) and w[1] == pytest.approx(1.0)
+
+
+def test_inverse_depth_where_end_point_rays_meet_the_line_and_its_jacobian():
+    """RGB-D line end points measure depth: the model's 1/z where a ray meets the line, and d/d(n, d)."""
+    rng = np.random.default_rng(7)
+    p1 = rng.normal(0, 1, (6, 3)) + [0, 0, 4]
+    p2 = rng.normal(0, 1, (6, 3)) + [0, 0, 4]
+    L = pl.from_points(p1, p2) * rng.uniform(0.5, 2.0, (6, 1))  # homogeneous: the scale must not matter
+    X = p1[:, None, :] + np.array([0.1, 0.8])[None, :, None] * (p2 - p1)[:, None, :]  # points on the lines
+    K = np.array([[500.0, 0, 320], [0, 510.0, 240], [0, 0, 1]])
+    uv = X @ K.T
+    segs = (uv[..., :2] / uv[..., 2:]).reshape(6, 4)
+    rays = pl.end_rays(segs, pl.line_projection_matrix(500.0, 510.0, 320.0, 240.0))
+    np.testing.assert_allclose(rays, X / X[..., 2:], atol=1e-12)
+    rho, d_n, d_d = pl.inverse_depth(L[:, :3], L[:, 3:], rays, jac=True)
+    np.testing.assert_allclose(rho, 1.0 / X[..., 2], rtol=1e-10)
+    h = 1e-6
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = h
+        num_n = (pl.inverse_depth(L[:, :3] + e, L[:, 3:], rays)[0] - pl.inverse_depth(L[:, :3] - e, L[:, 3:], rays)[0]) / (2 * h)
+        num_d = (pl.inverse_depth(L[:, :3], L[:, 3:] + e, rays)[0] - pl.inverse_depth(L[:, :3], L[:, 3:] - e, rays)[0]) / (2 * h)
+        np.testing.assert_allclose(d_n[..., k], num_n, rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(d_d[..., k], num_d, rtol=1e-6, atol=1e-8)

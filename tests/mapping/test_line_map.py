@@ -136,3 +136,33 @@ def test_depth_lines_keep_creases_and_drop_occluding_contours():
         assert ok_e.tolist() == [not on]
         if not on:  # the near side's depth: the silhouette placed on the box
             np.testing.assert_allclose(ends[0][:, 2], 1.5, atol=1e-6)
+
+
+def test_end_point_depths_are_read_off_each_side_extrapolated_to_the_segment():
+    """RGB-D line observations measure their end points' depth: on a steeply tilted plane the nearer side
+    2 px off the segment is ~5 mm nearer at 3 m than the segment (the creation fit's bias); each side
+    extrapolated to the segment (and the two averaged) reads the plane's depth there, so the measured inverse
+    depths equal the truth; a crease reads where its two surfaces meet. A frame without a depth map gets none."""
+    from vslam.data.types import PinholeCamera
+    from vslam.features.lines import LineConfig, LineFeatures
+
+    cam = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
+    ls = LineSlam.__new__(LineSlam)
+    ls.cam, ls.cfg, ls.K_L, ls.depth_weight = cam, LineConfig(), K_L, 1.0
+    ls.extractor = None
+    v, u = np.mgrid[0:480, 0:640].astype(np.float64)
+    xn, yn = (u - 320.0) / 500.0, (v - 240.0) / 500.0
+    plane = 3.0 / (1.0 - 0.6 * xn)  # z = 3 + 0.6 x: a wall seen at a slant
+    crease = np.where(v < 315, 4.0, 0.6 / np.maximum(yn, 1e-6))  # wall at 4 m meeting the floor at row 315
+    on = np.array([[-0.5, -0.4, 3.0 - 0.3], [0.2, 0.5, 3.0 + 0.12]])  # a vertical-ish segment on the plane
+    uv = on @ K.T
+    seg = (uv[:, :2] / uv[:, 2:]).reshape(1, 4)
+    lf = LineFeatures(seg, seg, np.zeros((1, 8), np.float32), np.array([100.0]))
+    rho = ls.end_inverse_depths(lf, plane.astype(np.float32))
+    np.testing.assert_allclose(rho[0], 1.0 / on[:, 2], rtol=2e-3)
+    _, _, near = ls.fit_from_depth(seg, seg, plane.astype(np.float32), np.eye(4))  # creation: the nearer side
+    err_near, err_ex = np.abs(near[0][:, 2] - on[:, 2]), np.abs(1.0 / rho[0] - on[:, 2])
+    assert err_near.min() > 0.004 and err_ex.max() < 0.25 * err_near.min(), (err_near, err_ex)
+    cs = np.array([[250.0, 315.0, 450.0, 315.0]])
+    rho_c = ls.end_inverse_depths(LineFeatures(cs, cs, np.zeros((1, 8), np.float32), np.array([200.0])), crease.astype(np.float32))
+    np.testing.assert_allclose(rho_c[0], 1.0 / 4.0, rtol=5e-3)

@@ -273,7 +273,7 @@ def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: Backe
     if problem.lines is not None:
         result.lines = line_estimates(est, line_ids)
         poses = {int(k): Twc[i] for i, k in enumerate(win.kf_ids.tolist())}
-        result.line_inliers = line_chi2(problem.lines, poses, result.lines, camera_K_L(camera)) <= problem.lines.chi2
+        result.line_inliers = problem.lines.inliers(line_chi2(problem.lines, poses, result.lines, camera_K_L(camera)))
     t5 = time.perf_counter()
     result.ms = {
         "build": 1e3 * (t1 - t0),

@@ -191,7 +191,7 @@ def visual_inertial_bundle_adjustment(problem: BAProblem, chain: ImuChain, camer
         cam_poses = {int(k): Twc[i] for i, k in enumerate(win.kf_ids.tolist())}
         for k in used_kf:  # chain keyframes without a point in the window
             cam_poses.setdefault(int(k), est.atPose3(X(k)).matrix() @ T_bc)
-        ba.line_inliers = line_chi2(problem.lines, cam_poses, ba.lines, camera_K_L(camera)) <= problem.lines.chi2
+        ba.line_inliers = problem.lines.inliers(line_chi2(problem.lines, cam_poses, ba.lines, camera_K_L(camera)))
     out = ViResult(ba)
     for k in chain_ids:
         out.velocity[k] = np.asarray(est.atVector(V(k)), dtype=np.float64).reshape(3)

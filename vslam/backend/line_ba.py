@@ -33,6 +33,8 @@ class LineProblem:
     lines: line id -> (6,) Plücker (n, d) world initial guess. obs_kf, obs_line: (M,) ids of each
     observation's keyframe and line; obs_seg: (M,4) observed segment (u1, v1, u2, v2) ideal pixels.
     sigma: pixel std of an end-point distance; prior_sigma_rad: weak prior on (U, W), radians.
+    obs_rho: (M,2) measured inverse depths of the end points (RGB-D; NaN: none) whitened by ``depth_weight``
+    (fx b / sigma: a virtual disparity); "window" mode only.
     """
 
     lines: dict[int, np.ndarray]
@@ -46,6 +48,20 @@ class LineProblem:
     # "window": line LM steps per factor evaluation, warm-started (1 vs 3: same results in the tests and
     # ``bench_lines``, the callback ~2.5x cheaper)
     inner_iterations: int = 1
+    obs_rho: np.ndarray | None = None
+    depth_weight: float = 0.0
+
+    @property
+    def has_depth(self) -> bool:
+        return self.obs_rho is not None and self.depth_weight > 0
+
+    def inliers(self, chi2: np.ndarray) -> np.ndarray:
+        """(M,) chi2 of each observation (``line_chi2``) -> inlier mask: ``chi2`` for the two end-point
+        distances, raised to chi2(3) / chi2(4) at 95 % where one / both end points have a depth."""
+        if not self.has_depth:
+            return chi2 <= self.chi2
+        n = np.isfinite(np.asarray(self.obs_rho, dtype=np.float64).reshape(-1, 2)).sum(axis=1)
+        return chi2 <= np.array([self.chi2, 7.815, 9.488])[n]
 
 
 def line_terms(lp: LineProblem, kf_in_graph: set[int], K_L: np.ndarray, huber_k: float,
@@ -56,6 +72,8 @@ def line_terms(lp: LineProblem, kf_in_graph: set[int], K_L: np.ndarray, huber_k:
     pose variables are body poses (visual-inertial BA; "window" mode only)."""
     if T_body_cam is not None and lp.mode != "window":
         raise ValueError("line landmarks on body poses (visual-inertial BA) need LineProblem.mode 'window'")
+    if lp.has_depth and lp.mode != "window":
+        raise ValueError("line end-point depths (LineProblem.obs_rho) need LineProblem.mode 'window'")
     facs: list[gtsam.NonlinearFactor] = []
     values = gtsam.Values()
     kf = np.asarray(lp.obs_kf, dtype=np.int64)
@@ -73,7 +91,9 @@ def line_terms(lp: LineProblem, kf_in_graph: set[int], K_L: np.ndarray, huber_k:
         win = LineWindow(np.array([lp.lines[j] for j in ids.tolist()]).reshape(-1, 6),
                          np.array([idx[j] for j in ln[ok].tolist()], dtype=np.int64),
                          np.array([pos[k] for k in kf[ok].tolist()], dtype=np.int64), seg[ok],
-                         [X(k) for k in pose_keys], K_L, lp.sigma, huber_k, lp.inner_iterations, T_body_cam)
+                         [X(k) for k in pose_keys], K_L, lp.sigma, huber_k, lp.inner_iterations, T_body_cam,
+                         np.asarray(lp.obs_rho, dtype=np.float64).reshape(-1, 2)[ok] if lp.has_depth else None,
+                         lp.depth_weight)
         win.line_ids = ids.tolist()  # window row -> line id
         f = win.factor()
         return ([f] if f is not None else []), values, win
@@ -105,8 +125,9 @@ def line_estimates(est: gtsam.Values, handle: LineWindow | list[int]) -> dict[in
 
 
 def line_chi2(lp: LineProblem, poses: dict[int, np.ndarray], lines: dict[int, np.ndarray], K_L: np.ndarray) -> np.ndarray:
-    """(M,) whitened squared end-point distances of every observation (inf where its keyframe or line is
-    unknown or the line projects degenerately). Vectorised over observations."""
+    """(M,) whitened squared end-point distances of every observation, with its end points' inverse-depth
+    rows where measured (inf where its keyframe or line is unknown or the line projects degenerately).
+    Vectorised over observations."""
     kf = np.asarray(lp.obs_kf, dtype=np.int64)
     ln = np.asarray(lp.obs_line, dtype=np.int64)
     out = np.full(len(kf), np.inf)
@@ -118,8 +139,13 @@ def line_chi2(lp: LineProblem, poses: dict[int, np.ndarray], lines: dict[int, np
     Lc = np.einsum("mij,mj->mi", _line_maps(Tcw), L)
     l = Lc[:, :3] @ K_L.T
     with np.errstate(invalid="ignore", divide="ignore"):
-        d = pl.segment_distances(np.asarray(lp.obs_seg, dtype=np.float64).reshape(-1, 4)[ok], l)
+        seg = np.asarray(lp.obs_seg, dtype=np.float64).reshape(-1, 4)[ok]
+        d = pl.segment_distances(seg, l)
         out[ok] = np.sum(d * d, axis=1) / lp.sigma**2
+        if lp.has_depth:
+            rho_obs = np.asarray(lp.obs_rho, dtype=np.float64).reshape(-1, 2)[ok]
+            ed = lp.depth_weight * (rho_obs - pl.inverse_depth(Lc[:, :3], Lc[:, 3:], pl.end_rays(seg, K_L))[0])
+            out[ok] += np.sum(np.where(np.isnan(rho_obs), 0.0, ed * ed), axis=1)
     out[~np.isfinite(out)] = np.inf
     return out
 

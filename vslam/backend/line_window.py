@@ -47,7 +47,7 @@ class LineWindow:
 
     def __init__(self, lines: np.ndarray, obs_line: np.ndarray, obs_pose: np.ndarray, segs: np.ndarray,
                  pose_keys: list[int], K_L: np.ndarray, sigma: float, huber_k: float | None, inner_iterations: int = 1,
-                 T_body_cam: np.ndarray | None = None):
+                 T_body_cam: np.ndarray | None = None, rho: np.ndarray | None = None, depth_weight: float = 0.0):
         self.n_lines = len(lines)
         self.line_ids: list[int] = list(range(self.n_lines))  # caller's ids of the rows of ``lines()``
         self.U, self.w = pl.to_orthonormal(np.asarray(lines, dtype=np.float64).reshape(-1, 6))
@@ -61,15 +61,25 @@ class LineWindow:
         self.x[:, 0, :2], self.x[:, 1, :2] = segs[:, :2], segs[:, 2:]
         self.pose_keys = list(pose_keys)
         self.K_L, self.inv_sigma, self.huber_k, self.inner = K_L, 1.0 / sigma, huber_k, inner_iterations
+        # RGB-D end-point inverse depths (M,2) (NaN: none) and the rays they were measured along; k residual
+        # rows per observation: 2 end-point distances, + 2 inverse depths (zero rows where not measured)
+        self.rho_obs, self.rays, self.depth_weight, self.k = None, None, 0.0, 2
+        if rho is not None and depth_weight > 0:
+            self.rho_obs = np.asarray(rho, dtype=np.float64).reshape(-1, 2)[order]
+            self.has_rho = np.isfinite(self.rho_obs)
+            self.rays = pl.end_rays(segs, K_L)
+            self.depth_weight, self.k = float(depth_weight), 4
         self.count = np.bincount(self.ol, minlength=self.n_lines)
-        # groups of lines with the same number of views (batched null-space QR per group)
+        # groups of lines with the same number of views (batched null-space QR per group); a line has pose
+        # information once its k n rows exceed its 4 DoF
+        self.min_views = 3 if self.k == 2 else 2
         self.groups: list[tuple[int, np.ndarray]] = []
         starts = np.r_[0, np.cumsum(self.count)[:-1]]
         self.starts = starts  # first observation row of each line (every line has >= 1)
-        for n in np.unique(self.count[self.count >= 3]).tolist():
+        for n in np.unique(self.count[self.count >= self.min_views]).tolist():
             js = np.flatnonzero(self.count == n)
             self.groups.append((n, starts[js][:, None] + np.arange(n)[None, :]))  # (B, n) observation rows
-        self.dim = int(sum(len(rows) * (2 * n - 4) for n, rows in self.groups))
+        self.dim = int(sum(len(rows) * (self.k * n - 4) for n, rows in self.groups))
         self._primed = False
         self._memo: tuple | None = None  # (poses bytes, anchor U, anchor w, inner solve there): ``_inner_solve``
         self.T_bc = None if T_body_cam is None else np.asarray(T_body_cam, dtype=np.float64)
@@ -103,6 +113,10 @@ class LineWindow:
         rho = np.sqrt(rho2)
         xl = np.einsum("mkj,mj->mk", self.x, l)
         e = xl * (self.inv_sigma / rho)[:, None]
+        dc = np.einsum("mji,mj->mi", R, dw)
+        if self.k == 4:  # e_d = w_d (rho_obs - rho(n_c, d_c)), see plucker.inverse_depth
+            r_pred, g_n, g_d = pl.inverse_depth(nc, dc, self.rays, jac)
+            e = np.concatenate([e, np.where(self.has_rho, self.depth_weight * (self.rho_obs - r_pred), 0.0)], axis=1)
         r, sw = e, None
         if self.huber_k is not None:
             r, sw = _huber(e, self.huber_k, jac)
@@ -113,16 +127,25 @@ class LineWindow:
         l01[:, 2] = 0.0
         A = self.x / rho[:, None, None] - (xl / (rho2 * rho)[:, None])[:, :, None] * l01[:, None, :]  # de/dl
         G = (A.reshape(-1, 3) @ (self.K_L * self.inv_sigma)).reshape(m, 2, 3)  # de/dn_c
+        Gd = None  # de/dd_c: the inverse-depth rows only
+        if self.k == 4:
+            hz = self.has_rho[:, :, None]
+            G = np.concatenate([G, np.where(hz, -self.depth_weight * g_n, 0.0)], axis=1)
+            Gd = np.concatenate([np.zeros((m, 2, 3)), np.where(hz, -self.depth_weight * g_d, 0.0)], axis=1)
         if sw is not None:  # IRLS (see line_factor._huber)
             G = sw[:, None, None] * G
+            Gd = None if Gd is None else sw[:, None, None] * Gd
         GR = np.einsum("mki,mji->mkj", G, R)  # de/d(world vector) through R^T
         # dL_w/d(theta, phi) (plucker.orthonormal_jacobian) folded with dn_c/dL_w = R^T [I, -[C]x]:
         # column i is R^T (dn_i - C x dd_i)
         u3 = Uo[:, :, 2]
         Q = np.stack([-_cross(C, w1 * u3), -w0 * u3, w0 * u2 + _cross(C, w1 * u1), -w1 * u1 - _cross(C, w0 * u2)], axis=2)
         Jl = np.einsum("mkj,mji->mki", GR, Q)
-        dc = np.einsum("mji,mj->mi", R, dw)
         Jx = np.concatenate([_cross(G, nc[:, None, :]), _cross(G, dc[:, None, :])], axis=2)  # r^T [a]x = (r x a)^T
+        if Gd is not None:  # d_c = R^T d_w: dd_w/d(theta, phi) columns (w1 u3, 0, -w1 u1, w0 u2); dd_c/domega = [d_c]x
+            Qd = np.stack([w1 * u3, np.zeros_like(u3), -w1 * u1, w0 * u2], axis=2)
+            Jl = Jl + np.einsum("mkj,mji->mki", np.einsum("mki,mji->mkj", Gd, R), Qd)
+            Jx[:, :, :3] += _cross(Gd, dc[:, None, :])
         return r, Jl, Jx
 
     def refine_lines(self, Twc: np.ndarray, iterations: int, U: np.ndarray | None = None, w: np.ndarray | None = None
@@ -173,21 +196,22 @@ class LineWindow:
         r, Jl, Jx = self._residuals(self._geom(Twc), U, w, True)
         K = len(self.pose_keys)
         rows_r, rows_J = [], []
+        k = self.k
         for n, obs in self.groups:
             B = len(obs)
-            JL = Jl[obs].reshape(B, 2 * n, 4)
-            Q = np.linalg.qr(JL, mode="complete")[0][:, :, 4:]  # (B, 2n, 2n-4) left null space
+            JL = Jl[obs].reshape(B, k * n, 4)
+            Q = np.linalg.qr(JL, mode="complete")[0][:, :, 4:]  # (B, kn, kn-4) left null space
             Qt = Q.transpose(0, 2, 1)
-            rows_r.append((Qt @ r[obs].reshape(B, 2 * n, 1))[:, :, 0].reshape(-1))
+            rows_r.append((Qt @ r[obs].reshape(B, k * n, 1))[:, :, 0].reshape(-1))
             if jac:
-                Jfull = np.zeros((B, 2 * n, K, 6))
+                Jfull = np.zeros((B, k * n, K, 6))
                 bi = np.repeat(np.arange(B), n)
                 ri = np.tile(np.arange(n), B)
                 pi = self.op[obs].reshape(-1)
-                Jo = Jx[obs].reshape(B * n, 2, 6)
-                Jfull[bi, 2 * ri, pi] = Jo[:, 0]
-                Jfull[bi, 2 * ri + 1, pi] = Jo[:, 1]
-                rows_J.append((Qt @ Jfull.reshape(B, 2 * n, 6 * K)).reshape(-1, 6 * K))
+                Jo = Jx[obs].reshape(B * n, k, 6)
+                for j in range(k):
+                    Jfull[bi, k * ri + j, pi] = Jo[:, j]
+                rows_J.append((Qt @ Jfull.reshape(B, k * n, 6 * K)).reshape(-1, 6 * K))
         rr = np.concatenate(rows_r) if rows_r else np.zeros(0)
         JJ = np.concatenate(rows_J) if jac and rows_J else np.zeros((0, 6 * K))
         return rr, JJ
@@ -206,7 +230,7 @@ class LineWindow:
 
     # -- GTSAM glue ---------------------------------------------------------------------------------------------
     def factor(self) -> gtsam.CustomFactor | None:
-        """The structureless factor on the window's poses; None when no line has >= 3 views."""
+        """The structureless factor on the window's poses; None when no line has ``min_views`` views."""
         if self.dim == 0:
             return None
 
@@ -223,7 +247,7 @@ class LineWindow:
                 # optimum, and the projected norm under-reports a line that is not yet there, which made LM
                 # reject every step near convergence (with Huber the inner solve converges linearly).
                 out = np.zeros(self.dim)
-                out[0] = np.sqrt(float(cost[self.count >= 3].sum()))  # the lines that have rows
+                out[0] = np.sqrt(float(cost[self.count >= self.min_views].sum()))  # the lines that have rows
                 return out
             r, J = self._projected(Twc, U, w, True)
             if H is not None:

@@ -73,6 +73,19 @@ class LineConfig:
     # for the others: stereo corridor seeds 0-3 0.78x -> 0.92x of points only (RGB-D 0.94x -> 0.91x).
     ba_min_views: int = 0
     weight: float = 1.0  # pose-only: line residual weight relative to points
+    # RGB-D: each observed end point also measures its depth (the segment's depth samples, each side
+    # extrapolated to it, fitted by a 3-D line), entering pose-only tracking and local BA as a virtual disparity
+    # fx b / z (b the RGB-D virtual baseline, as for the points) of this std in pixels: two more rows per
+    # observation, so a line seen by two keyframes already constrains them; 0 = lines are image-only. Chosen
+    # on validation corridors the bench rows do not use (2026-12-04, RGB-D corridor seeds 4-7 / 10-13, mean ATE
+    # m): points only 0.0059 / 0.0056, lines without depths 0.0049 / 0.0044, with depths at 0.3 px 0.0040 /
+    # 0.0041, 0.1 px 0.0042 / 0.0039, 0.05 px 0.0038 / 0.0035, 0.03 px 0.0038 / 0.0038. Synthetic depth is
+    # exact; Kinect depth bleeds at edges, and configs/tum_*.yaml use 0.3 (see there).
+    depth_sigma_px: float = 0.05
+    # RGB-D line creation reads each side's depth extrapolated to the segment, as the depth rows do, instead of
+    # the nearer side 2 px off (centimetres nearer than the segment on a wall seen at a slant): corridor seeds 4-7
+    # without depth rows 0.0049 -> 0.0045 m, with them (0.1 px, then in tracking only) 0.0050 -> 0.0043 m
+    create_extrapolate: bool = True
     # where new line landmarks come from: "depth" (the RGB-D depth map along the segment), "two_view" (a new
     # keyframe's segments matched to a covisible keyframe's by epipolar overlap, planes intersected), "both"
     # (depth first, two-view for what it left); "auto": depth for RGB-D, two-view for stereo and mono. RGB-D
@@ -90,18 +103,21 @@ class LineConfig:
 
 @dataclass
 class LineFeatures:
-    """Segments of one image: raw/segs (N,4) px; desc (N,D) float32; length (N,) px (ideal)."""
+    """Segments of one image: raw/segs (N,4) px; desc (N,D) float32; length (N,) px (ideal); rho (N,2) the
+    end points' measured inverse depths, 1/m (RGB-D, ``LineSlam.detect``; NaN: none), or None."""
 
     raw: np.ndarray
     segs: np.ndarray
     desc: np.ndarray
     length: np.ndarray
+    rho: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.segs)
 
     def subset(self, idx: np.ndarray) -> LineFeatures:
-        return LineFeatures(self.raw[idx], self.segs[idx], self.desc[idx], self.length[idx])
+        rho = None if self.rho is None else self.rho[idx]
+        return LineFeatures(self.raw[idx], self.segs[idx], self.desc[idx], self.length[idx], rho)
 
     @staticmethod
     def empty(dim: int) -> LineFeatures:

@@ -149,6 +149,37 @@ def end_points_from_depth(segs, z1, z2, T_world_cam, K) -> tuple[np.ndarray, np.
     return a @ R.T + t, b @ R.T + t
 
 
+def end_rays(segs: np.ndarray, K_L: np.ndarray) -> np.ndarray:
+    """(N,4) ideal segments -> (N,2,3) viewing rays (x, y, 1) of their end points, the intrinsics read off
+    the line projection matrix ``K_L`` (fx = K_L[1,1], fy = K_L[0,0], -fy cx, -fx cy in its last row)."""
+    fx, fy = K_L[1, 1], K_L[0, 0]
+    cx, cy = -K_L[2, 0] / fy, -K_L[2, 1] / fx
+    uv = np.asarray(segs, dtype=np.float64).reshape(-1, 2, 2)
+    return np.concatenate([(uv - [cx, cy]) / [fx, fy], np.ones(uv.shape[:2] + (1,))], axis=2)
+
+
+def inverse_depth(n_c: np.ndarray, d_c: np.ndarray, rays: np.ndarray, jac: bool = False):
+    """Inverse depth 1/z of the camera-frame line (n_c, d_c) (N,3) each where the viewing ray r = (x, y, 1)
+    of an image point passes closest to it; rays (N,k,3) -> rho (N,k) and, with jac, d rho/d n_c and
+    d rho/d d_c (N,k,3) each.
+
+    Why: an RGB-D end point measures its depth, and this is the depth the line predicts there. With
+    m = r x d, rho = |m|^2 / (m . n): for X = s r on the line, n = X x d = s m, so rho = 1/s. A ray along
+    the line (m -> 0) has no depth: the caller drops end points whose projection is that degenerate.
+    """
+    m = _cross3(rays, d_c[:, None, :])
+    mm = np.sum(m * m, axis=2)
+    mn = np.einsum("nki,ni->nk", m, n_c)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = mm / mn
+        if not jac:
+            return rho, None, None
+        d_n = -(rho / mn)[:, :, None] * m
+        d_m = (2.0 / mn)[:, :, None] * m - (rho / mn)[:, :, None] * n_c[:, None, :]
+    # m = [r]x d, so d rho / d d = d_m^T [r]x = (d_m x r)^T
+    return rho, d_n, _cross3(d_m, rays)
+
+
 def clip_to_segment(L_world: np.ndarray, segs: np.ndarray, T_world_cam: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Points of the infinite lines L (N,6) nearest to the viewing rays of the segments' end points (N,4)
     -> two (N,3) world points: the finite extent a map line gets for export (PLY line set)."""
@@ -196,9 +227,9 @@ def to_orthonormal(L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of (N,3) arrays (np.cross has ~40 us of overhead per call)."""
-    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+    """Cross product over the last axis, broadcast (np.cross has ~40 us of overhead per call)."""
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
 
 
 def from_orthonormal(U: np.ndarray, w: np.ndarray) -> np.ndarray:

@@ -167,7 +167,7 @@ class SlamTracker:
         t0 = time.perf_counter()
         feats, right = self._extract(frame)
         t1 = time.perf_counter()
-        lines = self.lines.detect(frame.image) if self.lines is not None else None
+        lines = self.lines.detect(frame.image, self._line_depth(frame)) if self.lines is not None else None
         t2 = time.perf_counter()
         # dynamic filtering drops keypoints first, and rectified stereo matching depends on which are left
         depth = self._depth(frame, feats, right) if self.dynamic is None else None
