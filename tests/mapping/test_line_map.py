@@ -166,3 +166,36 @@ def test_end_point_depths_are_read_off_each_side_extrapolated_to_the_segment():
     cs = np.array([[250.0, 315.0, 450.0, 315.0]])
     rho_c = ls.end_inverse_depths(LineFeatures(cs, cs, np.zeros((1, 8), np.float32), np.array([200.0])), crease.astype(np.float32))
     np.testing.assert_allclose(rho_c[0], 1.0 / 4.0, rtol=5e-3)
+
+
+def test_stereo_end_point_depths_from_the_right_images_matching_segment():
+    """Stereo line observations measure their end points' depth by intersecting the planes of a segment and
+    its match in the right image: exact for noiseless segments; none for a segment along the epipolar lines
+    (rectified rig: horizontal), whose two planes coincide."""
+    from vslam.data.types import Calibration, PinholeCamera
+    from vslam.backend.ba import StereoCamera
+    from vslam.features.lines import LineConfig, LineFeatures
+
+    cam = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
+    T_b1 = np.eye(4)
+    T_b1[0, 3] = 0.1  # right camera 10 cm along x
+    calib = Calibration(cam0=cam, cam1=cam, T_body_cam1=T_b1)
+    ls = LineSlam(None, cam, StereoCamera(500.0, 500.0, 320.0, 240.0, 0.1), "stereo", LineConfig(), None, calib)
+    ends = np.array([[[-0.6, -0.5, 3.0], [-0.4, 0.6, 3.5]],   # steep
+                     [[0.3, -0.4, 4.0], [0.9, 0.5, 2.5]],     # steep, receding
+                     [[-0.8, 0.3, 3.0], [0.8, 0.31, 3.0]]])   # horizontal: along the epipolar lines
+
+    def segs_in(shift):
+        uv = (ends - [shift, 0, 0]) @ K.T
+        return (uv[..., :2] / uv[..., 2:]).reshape(-1, 4)
+
+    rng = np.random.default_rng(0)
+    desc = rng.normal(size=(3, 8)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    left, right = segs_in(0.0), segs_in(0.1)
+    lf = LineFeatures(left, left, desc, np.hypot(left[:, 2] - left[:, 0], left[:, 3] - left[:, 1]))
+    perm = [2, 0, 1]  # the right image lists them in another order
+    rf = LineFeatures(right[perm], right[perm], desc[perm], lf.length[perm])
+    rho = ls.stereo_inverse_depths(lf, rf)
+    np.testing.assert_allclose(rho[:2], 1.0 / ends[:2, :, 2], rtol=1e-9)
+    assert np.isnan(rho[2]).all()

@@ -82,6 +82,14 @@ class LineConfig:
     # 0.0041, 0.1 px 0.0042 / 0.0039, 0.05 px 0.0038 / 0.0035, 0.03 px 0.0038 / 0.0038. Synthetic depth is
     # exact; Kinect depth bleeds at edges, and configs/tum_*.yaml use 0.3 (see there).
     depth_sigma_px: float = 0.05
+    # Stereo: the same end-point depth rows, measured by intersecting the planes of the segment and its match
+    # in the right image (descriptor + epipolar overlap, as two-view creation, crossing the epipolar lines at
+    # >= ``stereo_min_epi_angle_deg``: along them the planes coincide); std of that disparity in pixels, 0 =
+    # off. Chosen on validation stereo corridors (2026-12-04, seeds 4-7 / 10-13, mean ATE m): points only
+    # 0.0099 / 0.0091, lines without depths 0.0121 / 0.0075, with depths at 1 px 0.0109 / -, 0.5 px 0.0092 / -,
+    # 0.2 px 0.0087 / 0.0072. Costs a second LSD pass (the right image) on the front-end thread.
+    stereo_depth_sigma_px: float = 0.2
+    stereo_min_epi_angle_deg: float = 20.0
     # RGB-D line creation reads each side's depth extrapolated to the segment, as the depth rows do, instead of
     # the nearer side 2 px off (centimetres nearer than the segment on a wall seen at a slant): corridor seeds 4-7
     # without depth rows 0.0049 -> 0.0045 m, with them (0.1 px, then in tracking only) 0.0050 -> 0.0043 m

@@ -23,7 +23,7 @@ here so the point-only path is untouched when it is off:
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -137,7 +137,8 @@ def _bilinear(img: np.ndarray, p: np.ndarray) -> np.ndarray:
 class LineSlam:
     """The line half of the SLAM system; see the module docstring."""
 
-    def __init__(self, slam_map, cam: PinholeCamera, stereo_cam, sensor: SensorKind, cfg: LineConfig, backend):
+    def __init__(self, slam_map, cam: PinholeCamera, stereo_cam, sensor: SensorKind, cfg: LineConfig, backend,
+                 calibration=None):
         self.map, self.cam, self.stereo_cam, self.sensor, self.cfg, self.backend = slam_map, cam, stereo_cam, sensor, cfg, backend
         self.lmap = LineMap()
         self.extractor = LineExtractor(cfg)
@@ -150,13 +151,45 @@ class LineSlam:
         # whitening of an end point's inverse-depth residual: fx b / sigma (a virtual disparity, RGB-D only)
         self.depth_weight = (stereo_cam.fx * stereo_cam.baseline / cfg.depth_sigma_px
                              if sensor == "rgbd" and cfg.depth_sigma_px > 0 and stereo_cam.baseline > 0 else 0.0)
+        self.cam1, self.T_c0_c1 = None, None
+        if (sensor == "stereo" and cfg.stereo_depth_sigma_px > 0 and calibration is not None
+                and calibration.cam1 is not None and calibration.T_cam0_cam1 is not None):
+            self.cam1, self.T_c0_c1 = calibration.cam1, np.asarray(calibration.T_cam0_cam1, dtype=np.float64)
+            self.depth_weight = stereo_cam.fx * float(np.linalg.norm(self.T_c0_c1[:3, 3])) / cfg.stereo_depth_sigma_px
 
-    def detect(self, image: np.ndarray, depth_map: np.ndarray | None = None) -> LineFeatures:
-        """Segments of the image; with an RGB-D depth map (and ``depth_sigma_px``) their end points' depths."""
+    def detect(self, image: np.ndarray, depth_map: np.ndarray | None = None, right: np.ndarray | None = None
+               ) -> LineFeatures:
+        """Segments of the image; with an RGB-D depth map (``depth_sigma_px``) or the stereo rig's right image
+        (``stereo_depth_sigma_px``) their end points' depths."""
         lf = self.extractor.detect(image, self.cam)
-        if depth_map is not None and self.depth_weight > 0 and len(lf):
-            lf.rho = self.end_inverse_depths(lf, depth_map)
+        if self.depth_weight > 0 and len(lf):
+            if depth_map is not None:
+                lf.rho = self.end_inverse_depths(lf, depth_map)
+            elif right is not None and self.cam1 is not None:
+                lf.rho = self.stereo_inverse_depths(lf, self.extractor.detect(right, self.cam1))
         return lf
+
+    def stereo_inverse_depths(self, lf: LineFeatures, rf: LineFeatures) -> np.ndarray:
+        """(N,2) inverse depths of the left segments' end points from their matches among the right image's
+        segments ``rf``: the two back-projected planes meet in the 3-D line (left camera frame); NaN unmatched."""
+        rho = np.full((len(lf), 2), np.nan)
+        if len(rf) == 0:
+            return rho
+        K0 = self.cam.K
+        # right segments in the left camera's pixel units (the planes depend on normalised coordinates only)
+        H = K0 @ np.linalg.inv(self.cam1.K)
+        rs = np.hstack([rf.segs.reshape(-1, 2), np.ones((2 * len(rf), 1))]) @ H.T
+        rsegs = (rs[:, :2] / rs[:, 2:]).reshape(-1, 4)
+        cfg = replace(self.cfg, tri_min_epi_angle_deg=self.cfg.stereo_min_epi_angle_deg)
+        m = match_epipolar_segments(lf.segs, lf.desc, rsegs, rf.desc, fundamental(np.eye(4), self.T_c0_c1, K0), cfg)
+        if len(m) == 0:
+            return rho
+        L, _ = pl.triangulate_planes(lf.segs[m[:, 0]], rsegs[m[:, 1]], np.eye(4), self.T_c0_c1, K0)
+        ok = np.isfinite(L).all(axis=1)
+        if ok.any():
+            r, _, _ = pl.inverse_depth(L[ok, :3], L[ok, 3:], pl.end_rays(lf.segs[m[ok, 0]], self.K_L))
+            rho[m[ok, 0]] = np.where(r > 0, r, np.nan)
+        return rho
 
     def end_inverse_depths(self, lf: LineFeatures, depth_map: np.ndarray) -> np.ndarray:
         """(N,2) inverse depths of the segments' end points measured by the 3-D line their depth samples fit

@@ -124,7 +124,8 @@ class SlamTracker:
         self.vio = Vio(calibration, sensor, cfg.inertial, self.map) if cfg.inertial.enabled else None
         self.dynamic = DynamicFilter(cfg.dynamic, self.cam) if cfg.dynamic.enabled else None
         self.mapper.inertial = self.vio
-        self.lines = LineSlam(self.map, self.cam, self.stereo_cam, sensor, cfg.lines, cfg.backend) if cfg.lines.enabled else None
+        self.lines = (LineSlam(self.map, self.cam, self.stereo_cam, sensor, cfg.lines, cfg.backend, calibration)
+                      if cfg.lines.enabled else None)
         self.mapper.lines = self.lines
         self._line_feats, self._line_ids = None, None
         self._pre_init_lines: dict[int, LineFeatures] = {}  # monocular: segments of frames before the map exists
@@ -167,7 +168,8 @@ class SlamTracker:
         t0 = time.perf_counter()
         feats, right = self._extract(frame)
         t1 = time.perf_counter()
-        lines = self.lines.detect(frame.image, self._line_depth(frame)) if self.lines is not None else None
+        lines = (self.lines.detect(frame.image, self._line_depth(frame), frame.right if self.sensor == "stereo" else None)
+                 if self.lines is not None else None)
         t2 = time.perf_counter()
         # dynamic filtering drops keypoints first, and rectified stereo matching depends on which are left
         depth = self._depth(frame, feats, right) if self.dynamic is None else None
