@@ -58,7 +58,14 @@ def main() -> None:
     lp = line_window(rng, poses, args.lines, args.views)
     noisy = S.perturb(rng, prob, trans_m=0.01, rot_deg=0.3, pt_m=0.02)
     cfg = BackendConfig()
-    for name, lines in (("points only", None), ("+ lines, window", lp), ("+ lines, landmark", dataclasses.replace(lp, mode="landmark"))):
+    # RGB-D end-point depths (the truth read along the segments' end-point rays, 0.05 px virtual disparity)
+    K_L = pl.line_projection_matrix(S.CAM.fx, S.CAM.fy, S.CAM.cx, S.CAM.cy)
+    L = np.array([lp.lines[j] for j in lp.obs_line.tolist()])
+    Lc = np.array([pl.transform(L[i], inv_T(poses[k])) for i, k in enumerate(lp.obs_kf.tolist())])
+    rho = pl.inverse_depth(Lc[:, :3], Lc[:, 3:], pl.end_rays(lp.obs_seg, K_L))[0]
+    lp_d = dataclasses.replace(lp, obs_rho=rho, depth_weight=S.CAM.fx * 0.08 / 0.05)
+    for name, lines in (("points only", None), ("+ lines, window", lp), ("+ lines, window, depths", lp_d),
+                        ("+ lines, landmark", dataclasses.replace(lp, mode="landmark"))):
         noisy.lines = lines
         ts, errs = [], []
         for _ in range(args.repeat):
