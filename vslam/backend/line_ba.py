@@ -33,7 +33,7 @@ class LineProblem:
     lines: line id -> (6,) Plücker (n, d) world initial guess. obs_kf, obs_line: (M,) ids of each
     observation's keyframe and line; obs_seg: (M,4) observed segment (u1, v1, u2, v2) ideal pixels.
     sigma: pixel std of an end-point distance; prior_sigma_rad: weak prior on (U, W), radians.
-    obs_rho: (M,2) measured inverse depths of the end points (RGB-D; NaN: none) whitened by ``depth_weight``
+    obs_rho: (M,2) measured inverse depths of the end points (RGB-D / stereo; NaN: none) whitened by ``depth_weight``
     (fx b / sigma: a virtual disparity); "window" mode only.
     """
 

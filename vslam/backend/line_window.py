@@ -18,7 +18,9 @@ factors); the same 60-line window then costs 1.3-1.7x its points alone (233 -> 3
    factor's error equals the Huber cost of the line observations and its gradient is exact.
    A line seen twice gives 4 residuals for its 4 DoF and no pose information: it contributes 0 rows.
 
-Residual rows are fixed at construction (sum over lines of 2 n_j - 4), as GTSAM requires.
+Residual rows are fixed at construction (sum over lines of 2 n_j - 4), as GTSAM requires. With measured end-point
+depths (RGB-D / stereo, ``rho``) each observation has k = 4 rows (two inverse-depth rows, zero where not measured):
+k n_j - 4, so a line seen twice already gives rows; d rho / d(n_c, d_c) from ``plucker.inverse_depth``.
 Pose Jacobian (right retraction T_world_cam Exp(omega, v)): dn_c/d(omega, v) = [[n_c]x, [d_c]x], see
 ``line_factor``. With ``T_body_cam`` (visual-inertial BA, whose pose variables are body poses) the camera is
 T_world_body T_body_cam, and a right perturbation xi of the body pose is Ad(T_cam_body) xi of the camera's,
@@ -61,7 +63,7 @@ class LineWindow:
         self.x[:, 0, :2], self.x[:, 1, :2] = segs[:, :2], segs[:, 2:]
         self.pose_keys = list(pose_keys)
         self.K_L, self.inv_sigma, self.huber_k, self.inner = K_L, 1.0 / sigma, huber_k, inner_iterations
-        # RGB-D end-point inverse depths (M,2) (NaN: none) and the rays they were measured along; k residual
+        # RGB-D / stereo end-point inverse depths (M,2) (NaN: none) and the rays they were measured along; k residual
         # rows per observation: 2 end-point distances, + 2 inverse depths (zero rows where not measured)
         self.rho_obs, self.rays, self.depth_weight, self.k = None, None, 0.0, 2
         if rho is not None and depth_weight > 0:

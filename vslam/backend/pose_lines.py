@@ -112,14 +112,12 @@ def _line_block(T_cw, L, G, D, K_L, lw, jac: bool):
     l01 = l.copy()
     l01[:, 2] = 0.0
     Gd = (x / rho[:, None, None] - (xl / (rho2 * rho)[:, None])[:, :, None] * l01[:, None, :]) @ (K_L * lw)
-    if D is not None:  # e_d = -dw rho(n_c, d_c): d e_d / d n_c, d e_d / d d_c
+    if D is not None:  # e_d = -dw rho(n_c, d_c): d e_d / d n_c here, d e_d / d d_c below
         Gd = np.concatenate([Gd, np.where(has[:, :, None], -dw * dn, 0.0)], axis=1)
-        Gdd = np.concatenate([np.zeros((len(L), 2, 3)), np.where(has[:, :, None], -dw * dd, 0.0)], axis=1)
-        # n_c <- n_c - [n_c]x w - [d_c]x v, d_c <- d_c - [d_c]x w
-        J = -(Gd @ np.concatenate([_skew_stack(nc), _skew_stack(dc)], axis=2))
-        J[:, :, :3] -= Gdd @ _skew_stack(dc)
-        return e, J, None
+    # n_c <- n_c - [n_c]x w - [d_c]x v, d_c <- d_c - [d_c]x w
     J = -(Gd @ np.concatenate([_skew_stack(nc), _skew_stack(dc)], axis=2))
+    if D is not None:
+        J[:, 2:, :3] -= np.where(has[:, :, None], -dw * dd, 0.0) @ _skew_stack(dc)
     return e, J, None
 
 
