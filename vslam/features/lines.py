@@ -112,7 +112,7 @@ class LineConfig:
 @dataclass
 class LineFeatures:
     """Segments of one image: raw/segs (N,4) px; desc (N,D) float32; length (N,) px (ideal); rho (N,2) the
-    end points' measured inverse depths, 1/m (RGB-D, ``LineSlam.detect``; NaN: none), or None."""
+    end points' measured inverse depths, 1/m (RGB-D / stereo, ``LineSlam.detect``; NaN: none), or None."""
 
     raw: np.ndarray
     segs: np.ndarray

@@ -148,14 +148,18 @@ class LineSlam:
             log.warning("lines: create=%s needs an RGB-D depth map; %s lines come from two views", create, sensor)
             create = "two_view"
         self.from_depth, self.from_two_views = create in ("depth", "both"), create in ("two_view", "both")
-        # whitening of an end point's inverse-depth residual: fx b / sigma (a virtual disparity, RGB-D only)
-        self.depth_weight = (stereo_cam.fx * stereo_cam.baseline / cfg.depth_sigma_px
-                             if sensor == "rgbd" and cfg.depth_sigma_px > 0 and stereo_cam.baseline > 0 else 0.0)
-        self.cam1, self.T_c0_c1 = None, None
-        if (sensor == "stereo" and cfg.stereo_depth_sigma_px > 0 and calibration is not None
-                and calibration.cam1 is not None and calibration.T_cam0_cam1 is not None):
-            self.cam1, self.T_c0_c1 = calibration.cam1, np.asarray(calibration.T_cam0_cam1, dtype=np.float64)
-            self.depth_weight = stereo_cam.fx * float(np.linalg.norm(self.T_c0_c1[:3, 3])) / cfg.stereo_depth_sigma_px
+        # whitening of an end point's inverse-depth residual: fx b / sigma, a disparity (RGB-D: the virtual
+        # baseline of the points' depth; stereo: the rig's) -- 0: lines are image-only
+        sigma = {"rgbd": cfg.depth_sigma_px, "stereo": cfg.stereo_depth_sigma_px}.get(sensor, 0.0)
+        rig = sensor != "stereo" or (calibration is not None and calibration.cam1 is not None
+                                     and calibration.T_cam0_cam1 is not None)
+        self.depth_weight = stereo_cam.fx * stereo_cam.baseline / sigma if sigma > 0 and stereo_cam.baseline > 0 and rig else 0.0
+        self.cam1 = calibration.cam1 if sensor == "stereo" and self.depth_weight > 0 else None
+        if self.cam1 is not None:  # the rig, once: right pixels in the left camera's units, F, the matcher's gate
+            self.T_c0_c1 = np.asarray(calibration.T_cam0_cam1, dtype=np.float64)
+            self._H_right = cam.K @ np.linalg.inv(self.cam1.K)  # the planes depend on normalised coordinates only
+            self._F_rig = fundamental(np.eye(4), self.T_c0_c1, cam.K)
+            self._stereo_match_cfg = replace(cfg, tri_min_epi_angle_deg=cfg.stereo_min_epi_angle_deg)
 
     def detect(self, image: np.ndarray, depth_map: np.ndarray | None = None, right: np.ndarray | None = None
                ) -> LineFeatures:
@@ -172,32 +176,28 @@ class LineSlam:
     def stereo_inverse_depths(self, lf: LineFeatures, rf: LineFeatures) -> np.ndarray:
         """(N,2) inverse depths of the left segments' end points from their matches among the right image's
         segments ``rf``: the two back-projected planes meet in the 3-D line (left camera frame); NaN unmatched."""
-        rho = np.full((len(lf), 2), np.nan)
         if len(rf) == 0:
-            return rho
-        K0 = self.cam.K
-        # right segments in the left camera's pixel units (the planes depend on normalised coordinates only)
-        H = K0 @ np.linalg.inv(self.cam1.K)
-        rs = np.hstack([rf.segs.reshape(-1, 2), np.ones((2 * len(rf), 1))]) @ H.T
+            return np.full((len(lf), 2), np.nan)
+        rs = np.hstack([rf.segs.reshape(-1, 2), np.ones((2 * len(rf), 1))]) @ self._H_right.T
         rsegs = (rs[:, :2] / rs[:, 2:]).reshape(-1, 4)
-        cfg = replace(self.cfg, tri_min_epi_angle_deg=self.cfg.stereo_min_epi_angle_deg)
-        m = match_epipolar_segments(lf.segs, lf.desc, rsegs, rf.desc, fundamental(np.eye(4), self.T_c0_c1, K0), cfg)
-        if len(m) == 0:
-            return rho
-        L, _ = pl.triangulate_planes(lf.segs[m[:, 0]], rsegs[m[:, 1]], np.eye(4), self.T_c0_c1, K0)
-        ok = np.isfinite(L).all(axis=1)
-        if ok.any():
-            r, _, _ = pl.inverse_depth(L[ok, :3], L[ok, 3:], pl.end_rays(lf.segs[m[ok, 0]], self.K_L))
-            rho[m[ok, 0]] = np.where(r > 0, r, np.nan)
-        return rho
+        m = match_epipolar_segments(lf.segs, lf.desc, rsegs, rf.desc, self._F_rig, self._stereo_match_cfg)
+        Lc = np.full((len(lf), 6), np.nan)
+        if len(m):
+            Lc[m[:, 0]] = pl.triangulate_planes(lf.segs[m[:, 0]], rsegs[m[:, 1]], np.eye(4), self.T_c0_c1, self.cam.K)[0]
+        return self._end_rho(Lc, lf.segs)
 
     def end_inverse_depths(self, lf: LineFeatures, depth_map: np.ndarray) -> np.ndarray:
         """(N,2) inverse depths of the segments' end points measured by the 3-D line their depth samples fit
         (``fit_from_depth`` in the camera frame), NaN where they fit none."""
-        ok, Lc, _ = self.fit_from_depth(lf.raw, lf.segs, depth_map, np.eye(4), extrapolate=True)
-        rho = np.full((len(lf), 2), np.nan)
+        return self._end_rho(self.fit_from_depth(lf.raw, lf.segs, depth_map, np.eye(4), extrapolate=True)[1], lf.segs)
+
+    def _end_rho(self, Lc: np.ndarray, segs: np.ndarray) -> np.ndarray:
+        """(N,2) inverse depths of camera-frame lines Lc (N,6; NaN rows: none) at the end-point rays of segs;
+        NaN where a line has none there or lies behind the camera."""
+        rho = np.full((len(Lc), 2), np.nan)
+        ok = np.isfinite(Lc).all(axis=1)
         if ok.any():
-            r, _, _ = pl.inverse_depth(Lc[ok, :3], Lc[ok, 3:], pl.end_rays(lf.segs[ok], self.K_L))
+            r = pl.inverse_depth(Lc[ok, :3], Lc[ok, 3:], pl.end_rays(segs[ok], self.K_L))[0]
             rho[ok] = np.where(r > 0, r, np.nan)
         return rho
 
@@ -230,7 +230,7 @@ class LineSlam:
         if len(lids) == 0:
             return T_world_cam, line_ids
         L = np.array([self.lmap.lines[int(i)].L for i in lids])
-        rho = None if lf.rho is None or self.depth_weight <= 0 else lf.rho[segi]
+        rho = None if lf.rho is None else lf.rho[segi]  # measured only with depth_weight > 0 (``detect``)
         T, _, lin = refine_pose_points_lines(T_world_cam, point_xyz, point_uv, point_ur, L, lf.segs[segi], self.K_L,
                                              self.stereo_cam, self.backend, self.cfg.pixel_sigma, self.cfg.weight,
                                              rho, self.depth_weight)
@@ -294,12 +294,12 @@ class LineSlam:
         # the nearer side; NaN only where both are missing. Their mean on one surface halves the creation error
         # (corridor lines 1.8 -> 0.9 cm off their wall) but measured worse: corridor ATE over seeds 0-3
         # 0.0044 / 0.0047 / 0.0067 / 0.0060 m against 0.0040 / 0.0045 / 0.0059 / 0.0061 m (2026-12-02)
-        z = np.fmin(zs[0], zs[1])
         if extrapolate:  # each side's depth extrapolated to the segment (2 z(2 px) - z(4 px)), both averaged
             with np.errstate(invalid="ignore"):
-                ex = [2 * zs[0] - zs[2], 2 * zs[1] - zs[3]]
-                ex = [np.where((a > 0) & (b > 0), e, np.nan) for e, a, b in ((ex[0], zs[0], zs[2]), (ex[1], zs[1], zs[3]))]
+                ex = [np.where((a > 0) & (b > 0), 2 * a - b, np.nan) for a, b in ((zs[0], zs[2]), (zs[1], zs[3]))]
             z = np.where(np.isfinite(ex[0]) & np.isfinite(ex[1]), 0.5 * (ex[0] + ex[1]), np.fmin(ex[0], ex[1]))
+        else:
+            z = np.fmin(zs[0], zs[1])
         with np.errstate(invalid="ignore"):
             ok = np.isfinite(z) & (z > 0.1) & (z < 10.0)
             if self.cfg.surface_only:  # both sides at one depth: a texture / crease edge, not an occluding contour
