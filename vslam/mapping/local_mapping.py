@@ -82,6 +82,20 @@ class MappingConfig:
     ba_lag_frames: int = 0
 
 
+class GatheredPoints:
+    """Positions and descriptors of map points ``ids`` read once for a fusion pass over several keyframes:
+    fusing changes neither (a merge keeps the kept point's), only which ids still exist and who sees them."""
+
+    def __init__(self, slam_map: Map, ids: np.ndarray):
+        self.ids = np.unique(np.asarray(ids, np.int64))
+        self.xyz = slam_map.points_xyz(self.ids)
+        self.desc = slam_map.descriptors(self.ids)
+
+    def rows(self, pids: np.ndarray) -> np.ndarray:
+        """Rows of ``pids`` (each one of ``ids``)."""
+        return np.searchsorted(self.ids, pids)
+
+
 class LocalMapper:
     """Owns nothing but the map reference and settings; ``process(kf)`` mutates the map."""
 
@@ -174,19 +188,22 @@ class LocalMapper:
                               max_dist=self.cfg.max_hamming, ratio=self.cfg.tri_ratio)
 
     # -- fusion and culling ----------------------------------------------------
-    def _fuse_into(self, target: KeyFrame, pids: np.ndarray) -> int:
+    def _fuse_into(self, target: KeyFrame, pids: np.ndarray, gathered: GatheredPoints | None = None) -> int:
         """Project ``pids`` into ``target``; attach to free keypoints, merge with duplicates. -> fusions.
-        Ids no longer in the map are skipped (loop fusion passes one list to several keyframes, merging as it goes)."""
+        Ids no longer in the map are skipped (loop fusion passes one list to several keyframes, merging as it goes).
+        ``gathered``: the points' positions and descriptors, read once for several calls (else read here)."""
         pids = np.asarray(pids, np.int64)
         pids = pids[~np.isin(pids, target.point_ids)]  # not already seen by the target
         pids = self.map.existing(pids)
         if len(pids) == 0 or len(target.features) == 0:
             return 0
-        uv, z, vis = project(target.T_world_cam, self.map.points_xyz(pids), self.cam)
+        g = gathered if gathered is not None else GatheredPoints(self.map, pids)
+        rows = g.rows(pids)
+        uv, z, vis = project(target.T_world_cam, g.xyz[rows], self.cam)
         idx = np.flatnonzero(vis)
         if len(idx) == 0:
             return 0
-        pairs = match_by_projection(uv[idx], self.map.descriptors(pids[idx]), target.features.uv, target.features.desc,
+        pairs = match_by_projection(uv[idx], g.desc[rows[idx]], target.features.uv, target.features.desc,
                                     self.cfg.fuse_radius_px, self.cfg.max_hamming, 1.0)
         n = 0
         for pi, kp in pairs:
@@ -206,14 +223,16 @@ class LocalMapper:
         return n
 
     def fuse(self, kf: KeyFrame, neighbors: list[int]) -> None:
+        ids = np.concatenate([kf.point_ids] + [self.map.keyframes[n].point_ids for n in neighbors])
+        gathered = GatheredPoints(self.map, np.unique(ids[ids >= 0]))  # every id the passes below can see
         mine = kf.point_ids[kf.point_ids >= 0]
         for nb_id in neighbors:
-            self._fuse_into(self.map.keyframes[nb_id], mine)
+            self._fuse_into(self.map.keyframes[nb_id], mine, gathered)
             mine = kf.point_ids[kf.point_ids >= 0]
         theirs = [self.map.keyframes[n].point_ids for n in neighbors]
         if theirs:
             cand = np.unique(np.concatenate(theirs))
-            self._fuse_into(kf, cand[cand >= 0])
+            self._fuse_into(kf, cand[cand >= 0], gathered)
 
     def cull(self, cur_kf: int) -> None:
         """ORB-SLAM MapPointCulling on points created in the last few keyframes."""
@@ -235,9 +254,10 @@ class LocalMapper:
         """Move the oldest window keyframes (never ``kf_id``) into ``fixed`` (in place) until the fixed
         keyframes observe at least ``ba_min_anchor_points`` of the window points ``pts``."""
         fixed_set = set(fixed)
+        observations = [self.map.points[p].observations for p in pts.tolist()]
 
         def n_anchored() -> int:
-            return sum(1 for p in pts if not fixed_set.isdisjoint(self.map.points[int(p)].observations))
+            return sum(1 for obs in observations if not fixed_set.isdisjoint(obs))
 
         while n_anchored() < self.cfg.ba_min_anchor_points:
             older = sorted(k for k in window if k != kf_id)
@@ -296,9 +316,11 @@ class LocalMapper:
         if len(pts) == 0:
             return None
         fixed_counts: dict[int, int] = {}
-        for pid in pts:
-            for k in m.points[int(pid)].observations:
-                if k not in window:
+        in_window = set(window)
+        points = m.points
+        for pid in pts.tolist():  # Python ints: faster dict lookups than numpy scalars
+            for k in points[pid].observations:
+                if k not in in_window:
                     fixed_counts[k] = fixed_counts.get(k, 0) + 1
         fixed = sorted(fixed_counts, key=lambda k: (-fixed_counts[k], k))[: self.cfg.ba_max_fixed]
         first = min(m.keyframes)
