@@ -1,6 +1,7 @@
 import numpy as np
 
 from vslam.geometry import R_to_quat_wxyz, inv_T, make_T, quat_wxyz_to_R, so3_exp, so3_log
+from vslam.geometry.se3 import gather_Rt
 
 
 def test_inverse_and_quaternion_round_trip():
@@ -24,3 +25,12 @@ def test_quaternion_order_is_wxyz():
 def test_inverse_of_stack():
     Ts = np.stack([make_T(so3_exp([0, 0, a]), [a, 1, 2]) for a in (0.1, 0.2, 0.3)])
     np.testing.assert_allclose(np.einsum("nij,njk->nik", Ts, inv_T(Ts)), np.tile(np.eye(4), (3, 1, 1)), atol=1e-12)
+
+
+def test_gather_Rt_equals_fancy_indexing():
+    rng = np.random.default_rng(0)
+    T = rng.normal(size=(5, 4, 4))
+    idx = np.array([4, 0, 0, 2, 3, 4])
+    R, t = gather_Rt(T, idx)
+    np.testing.assert_array_equal(R, T[idx, :3, :3])
+    np.testing.assert_array_equal(t, T[idx, :3, 3])

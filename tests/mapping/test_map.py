@@ -193,3 +193,27 @@ def test_fusion_skips_points_merged_away_meanwhile():
     m.remove_point(gone.id)
     assert mapper._fuse_into(target, np.array([gone.id, p.id])) == 1
     assert p.observations == {0: 5, 1: 5}
+
+
+def test_add_points_equals_one_at_a_time():
+    one, many = _map_with(2), _map_with(2)
+    one.add_point(np.zeros(3), 1, 0)
+    many.add_point(np.zeros(3), 1, 0)  # ids continue after existing points
+    X, kps = np.arange(12.0).reshape(4, 3), np.array([7, 3, 9, 4])
+    ids = [one.add_point(X[i], 0, int(k)).id for i, k in enumerate(kps)]
+    assert many.add_points(X, 0, kps) == ids
+    np.testing.assert_array_equal(many.keyframes[0].point_ids, one.keyframes[0].point_ids)
+    for i in ids:
+        a, b = one.points[i], many.points[i]
+        assert (a.first_kf, a.observations, a.n_visible, a.n_found) == (b.first_kf, b.observations, b.n_visible, b.n_found)
+        np.testing.assert_array_equal(a.xyz, b.xyz)
+        np.testing.assert_array_equal(a.descriptor, b.descriptor)
+    many.keyframes[0].features.desc[7] ^= 255  # the point keeps its own copy of the descriptor
+    np.testing.assert_array_equal(many.points[ids[0]].descriptor, one.points[ids[0]].descriptor)
+    assert many.revision == one.revision
+    try:
+        many.add_points(np.zeros((1, 3)), 0, np.array([7]))  # already a map point
+    except ValueError as e:
+        assert "keyframe 0" in str(e)
+    else:
+        raise AssertionError("expected a ValueError")

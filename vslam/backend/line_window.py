@@ -34,6 +34,7 @@ import numpy as np
 
 from vslam.backend.line_factor import _cross, _huber, _skew_stack
 from vslam.geometry import plucker as pl
+from vslam.geometry.se3 import gather_Rt
 
 _MAX_STEP = 0.05  # rad, largest (theta, phi) step of one inner iteration
 _PRIME_ITERATIONS = 4  # inner iterations at the first evaluation; later ones warm-start from the last linearisation
@@ -96,7 +97,7 @@ class LineWindow:
     # -- numpy core ------------------------------------------------------------------------------------------
     def _geom(self, Twc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per observation: R_world_cam (M,3,3) and camera centre C (M,3)."""
-        return Twc[self.op, :3, :3], Twc[self.op, :3, 3]
+        return gather_Rt(Twc, self.op)
 
     def _residuals(self, geom: tuple[np.ndarray, np.ndarray], U: np.ndarray, w: np.ndarray, jac: bool):
         """Robust whitened residuals (M,2) and, with jac, dr/d(line 4) (M,2,4) and dr/d(pose 6) (M,2,6).

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from vslam.backend.projection import MIN_DEPTH
-from vslam.geometry.se3 import so3_exp
+from vslam.geometry.se3 import gather_Rt, so3_exp
 
 _REL_TOL = 1e-6  # factors.lm_params: relative error decrease that ends LM
 _ABS_TOL = 1e-10
@@ -128,7 +128,7 @@ class _Problem:
         self.behind = 2.0 * camera.fx * self.w
 
     def _residuals(self, Tcw, P):
-        R, t = Tcw[self.ik, :3, :3], Tcw[self.ik, :3, 3]
+        R, t = gather_Rt(Tcw, self.ik)
         pc = np.einsum("mij,mj->mi", R, P[self.ip]) + t
         Z = pc[:, 2]
         front = Z > MIN_DEPTH
@@ -174,7 +174,12 @@ class _Problem:
             s = a * self.S
             D[:, 2, 0], D[:, 2, 2] = s * iz, -s * (xn - c.baseline * iz) * iz
         Jp = np.empty((len(iz), 3, 6))
-        Jp[:, :, :3] = np.cross(pc[:, None, :], D)  # row d: d^T (-[pc]x) = (pc x d)^T
+        # row d: d^T (-[pc]x) = (pc x d)^T; np.cross's formulas written out (same values, ~2x faster)
+        a0, a1, a2 = pc[:, None, 0], pc[:, None, 1], pc[:, None, 2]
+        d0, d1, d2 = D[:, :, 0], D[:, :, 1], D[:, :, 2]
+        Jp[:, :, 0] = a1 * d2 - a2 * d1
+        Jp[:, :, 1] = a2 * d0 - a0 * d2
+        Jp[:, :, 2] = a0 * d1 - a1 * d0
         Jp[:, :, 3:] = D
         Jl = D @ R
         return _Lin(cost, Jp, Jl, r * sw[:, None])

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from vslam.backend.projection import chi2_thresholds, measurement_matrix, whitened_sq_errors
-from vslam.geometry.se3 import inv_T
+from vslam.geometry.se3 import gather_Rt, inv_T
 
 if TYPE_CHECKING:
     from vslam.backend.ba import BackendConfig, BAProblem, StereoCamera
@@ -49,7 +49,8 @@ class DenseWindow:
         if self.kf.shape[0] == 0:
             return np.zeros(0)
         Tcw = inv_T(Twc)
-        pc = np.einsum("mij,mj->mi", Tcw[self.ik, :3, :3], P[self.ip]) + Tcw[self.ik, :3, 3]
+        R, t = gather_Rt(Tcw, self.ik)
+        pc = np.einsum("mij,mj->mi", R, P[self.ip]) + t
         chi2, _ = whitened_sq_errors(pc, self.meas, stereo, self.sigma, camera)
         return chi2
 

@@ -32,6 +32,14 @@ def inv_T(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
+def gather_Rt(T: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(K,4,4) transforms and (M,) indices -> their rotations (M,3,3) and translations (M,3). ``np.take`` of
+    contiguous copies: the same values as ``T[idx, :3, :3]``, whose mixed fancy + slice indexing is ~5-10x
+    slower (the per-observation gathers of the BA windows' inner loops)."""
+    return (np.take(np.ascontiguousarray(T[:, :3, :3]), idx, axis=0),
+            np.take(np.ascontiguousarray(T[:, :3, 3]), idx, axis=0))
+
+
 def quat_wxyz_to_R(q: np.ndarray) -> np.ndarray:
     """(..., 4) unit quaternions (w, x, y, z) -> (..., 3, 3) rotations; normalises the input."""
     q = np.asarray(q, dtype=np.float64)

@@ -149,7 +149,7 @@ class LocalMapper:
             return []
         Xc = self.cam.backproject(kf.features.uv[free], kf.depth[free])
         Xw = Xc @ kf.T_world_cam[:3, :3].T + kf.T_world_cam[:3, 3]
-        return [self.map.add_point(Xw[i], kf.id, int(kp)).id for i, kp in enumerate(free)]
+        return self.map.add_points(Xw, kf.id, free)
 
     def triangulate(self, kf: KeyFrame, neighbors: list[int]) -> list[int]:
         """New points from descriptor matches of unmatched keypoints between ``kf`` and each neighbour."""
