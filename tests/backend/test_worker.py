@@ -54,3 +54,23 @@ def test_worker_failure_is_raised_where_the_result_is_awaited():
         worker.close()
     with pytest.raises(RuntimeError, match="nothing was submitted"):
         BAWorker().result()
+
+
+def test_problems_and_results_pickle_compactly_with_the_same_values():
+    import pickle
+
+    from vslam.backend.ba import BAResult
+
+    p = _problem(4)
+    q = pickle.loads(pickle.dumps(p))
+    assert list(q.points) == list(p.points) and q.fixed == p.fixed and q.poses.keys() == p.poses.keys()
+    for j in p.points:
+        np.testing.assert_array_equal(q.points[j], p.points[j])
+    np.testing.assert_array_equal(q.obs_uv, p.obs_uv)
+    r = BAResult({}, dict(p.points), np.ones(3, bool), lines={7: np.ones(6)}, depth_only=np.zeros(3, bool))
+    data = pickle.dumps(r)
+    assert len(data) < 40 * len(p.points) + 2000  # two arrays, not one pickled array per point
+    s = pickle.loads(data)
+    assert list(s.points) == list(r.points) and s.lines.keys() == {7} and s.depth_only is not None
+    empty = pickle.loads(pickle.dumps(BAResult({}, {}, np.zeros(0, bool))))
+    assert empty.points == {}

@@ -146,6 +146,24 @@ class BackendConfig:
     pose_iterations: int = 10  # pose-only: LM iterations per round (ORB-SLAM2: 10)
 
 
+class _CompactPoints:
+    """Pickles a ``points`` dict {id: (3,) array} as two arrays: the BA worker ships every window's points both
+    ways, and a dict of ~3000 small arrays took ~16 ms to pickle and ~10 ms to unpickle on the tracking thread
+    (two arrays: well under 1 ms). Same values after the round trip."""
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        pts = state["points"]
+        state["points"] = (np.fromiter(pts.keys(), np.int64, len(pts)),
+                           np.array(list(pts.values()), dtype=np.float64).reshape(-1, 3))
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        ids, xyz = state["points"]
+        self.__dict__.update(state)
+        self.points = dict(zip(ids.tolist(), xyz))
+
+
 @dataclass(frozen=True)
 class StereoCamera:
     """Pinhole of the (rectified) left camera; baseline in metres for stereo-like measurements (0 = mono only).
@@ -164,7 +182,7 @@ class StereoCamera:
 
 
 @dataclass
-class BAProblem:
+class BAProblem(_CompactPoints):
     """A local BA window.
 
     poses: keyframe id -> (4,4) T_world_cam initial guess.
@@ -187,7 +205,7 @@ class BAProblem:
 
 
 @dataclass
-class BAResult:
+class BAResult(_CompactPoints):
     poses: dict[int, np.ndarray]  # optimized poses of the non-fixed keyframes (fixed ones left out)
     points: dict[int, np.ndarray]  # every point of the problem (unobserved ones unchanged)
     inliers: np.ndarray  # (M,) bool, chi2 test after optimisation
