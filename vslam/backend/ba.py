@@ -140,7 +140,11 @@ class BackendConfig:
     # ms/frame on KITTI 07 mono. Not the default: over the whole bench (2026-12-03) most rows kept their ATE to
     # 0.1 mm, but the chaotic ones moved, some for the worse (TUM with walkers and the detector 0.0186 -> 0.0305 m,
     # monocular VIO room 0.034 -> 0.063 m, KITTI mono lines 0.291 -> 0.295 m; better: TUM walkers with the
-    # geometric check alone 0.211 -> 0.187 m, dim stereo corridor 0.0079 -> 0.0075 m).
+    # geometric check alone 0.211 -> 0.187 m, dim stereo corridor 0.0079 -> 0.0075 m). Again on 18 rows
+    # (2026-12-04, `vslam bench --sweep slam.backend.solver=gtsam,numpy`): 12 rows the same ATE to 0.1 mm, faster
+    # almost everywhere (TUM 93 -> 78, loop room RGB-D 331 -> 248, corridor stereo 302 -> 242 ms/frame at 2 jobs);
+    # TUM walkers + detector 0.0195 -> 0.0314 m again, but that row is chaotic: with PnP RANSAC seeds 1 / 2 / 3
+    # GTSAM gives 0.0342 / 0.0321 / 0.0190 m and numpy 0.0327 / 0.0279 / 0.0281 m.
     solver: Literal["gtsam", "numpy"] = "gtsam"
     pose_rounds: int = 4  # pose-only: optimise / classify rounds (ORB-SLAM2: 4)
     pose_iterations: int = 10  # pose-only: LM iterations per round (ORB-SLAM2: 10)
