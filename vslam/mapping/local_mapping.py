@@ -224,7 +224,7 @@ class LocalMapper:
 
     def fuse(self, kf: KeyFrame, neighbors: list[int]) -> None:
         ids = np.concatenate([kf.point_ids] + [self.map.keyframes[n].point_ids for n in neighbors])
-        gathered = GatheredPoints(self.map, np.unique(ids[ids >= 0]))  # every id the passes below can see
+        gathered = GatheredPoints(self.map, ids[ids >= 0])  # every id the passes below can see
         mine = kf.point_ids[kf.point_ids >= 0]
         for nb_id in neighbors:
             self._fuse_into(self.map.keyframes[nb_id], mine, gathered)
