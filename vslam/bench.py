@@ -44,7 +44,8 @@ PER_FRAME = ("features", "depth", "pose", "total")  # run on every frame: median
 @dataclass(frozen=True)
 class BenchRow:
     name: str
-    kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch", "place", "features", "detector", "ab"] = "run"
+    kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch", "place", "features", "detector", "ab",
+                  "speed"] = "run"
     config: str = ""  # pipeline YAML, relative to the suite file's folder's parent (the repo root) or absolute
     set: tuple[str, ...] = ()  # KEY=VALUE overrides
     note: str = ""
@@ -226,6 +227,21 @@ def _job_detector(overrides: dict[str, Any]) -> dict[str, Any]:
     return {**res, "seconds": time.perf_counter() - t0, "peak_rss_mb": _peak_rss_mb()}
 
 
+def _job_speed(overrides: dict[str, Any]) -> dict[str, Any]:
+    """Issue 10: the learned front end's networks, ms per frame on one device (``profiling.network_speed``;
+    ``set``: device, frames, repeats, threads). device=cuda on a machine without a GPU is skipped, not failed:
+    the row keeps what a GPU machine measured."""
+    import torch
+
+    from vslam.profiling import network_speed
+
+    device = str(overrides.get("device", "auto"))
+    if device == "cuda" and not torch.cuda.is_available():
+        return {"skipped": "no CUDA device here"}
+    return network_speed(device, frames=int(overrides.get("frames", 20)), repeats=int(overrides.get("repeats", 3)),
+                         threads=int(overrides.get("threads", 2)))
+
+
 def execute_job(kind: str, config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
     """One job in this process -> its result row (``vslam.batch`` calls this in its worker processes)."""
     if kind == "fusion":
@@ -238,6 +254,8 @@ def execute_job(kind: str, config: str | None, overrides: dict[str, Any], out_di
         return _job_features(overrides)
     if kind == "detector":
         return _job_detector(overrides)
+    if kind == "speed":
+        return _job_speed(overrides)
     fn = _job_run if kind == "run" else _job_render
     return fn(config, overrides, out_dir)
 
@@ -389,13 +407,16 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
             plan.append((row, ab_jobs(cfg, over, grid, parse_overrides(list(row.treatment)), str(jobs_dir / row.name))))
             ab_labels[row.name] = labels
         else:  # a place / features row is deterministic and reports no timing that repeats would steady
-            n = 1 if row.kind in ("place", "features", "detector") else max(1, repeat)
+            n = 1 if row.kind in ("place", "features", "detector", "speed") else max(1, repeat)
             plan.append((row, [Job(row.kind, cfg, over, str(jobs_dir / f"{row.name}-{i}")) for i in range(n)]))
     results = iter(run_jobs([j for _, jobs in plan for j in jobs], workers, ray))
     parallel = {"parallel": workers if ray is None else f"ray:{workers}"} if workers > 1 or ray is not None else {}
     for row, jobs in plan:
         done = [next(results) for _ in jobs]
         result = ab_result(ab_labels[row.name], done) if row.kind == "ab" else _aggregate(done)
+        if "skipped" in result and row.name in kept:  # e.g. a GPU row on a machine without one
+            log.info("%s: %s; its earlier measurement stays", row.name, result["skipped"])
+            continue
         kept[row.name] = {"result": _json_safe(result), "measured": now, "repeat": 1 if row.kind == "ab" else len(jobs),
                           "machine": machine, **parallel}
     dropped = sorted(set(kept) - names)
@@ -486,7 +507,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     ]
     for row, e in entries:
         r, repeat = e["result"], int(e["repeat"])
-        if row.kind in ("fusion", "imu_preint", "batch", "place", "features", "detector", "ab"):  # own tables below
+        if row.kind in ("fusion", "imu_preint", "batch", "place", "features", "detector", "ab", "speed"):  # own tables below
             continue
         if "error" in r:
             lines.append(md_failed_row(row, r["error"], 12))
@@ -517,6 +538,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     lines += _place_table([(row, e["result"]) for row, e in entries if row.kind == "place"])
     lines += _features_table([(row, e["result"]) for row, e in entries if row.kind == "features"])
     lines += _detector_table([(row, e["result"]) for row, e in entries if row.kind == "detector"])
+    lines += _speed_table([(row, e["result"]) for row, e in entries if row.kind == "speed"])
     lines += batch_table([(row, e["result"]) for row, e in entries if row.kind == "batch"])
     lines += ab_table([(row, e["result"]) for row, e in entries if row.kind == "ab"])
     notes = [f"- **{row.name}**: {row.note}" for row, _ in entries if row.note]
@@ -645,6 +667,25 @@ def _detector_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     from vslam.dynamic.evaluate import format_table
 
     return _report_tables(rows, "## Dynamic-object detector (issue 5, `{name}`)", format_table)
+
+
+def _speed_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
+    """Issue 10: the learned front end's networks per device, one table for all such rows."""
+    from vslam.profiling import format_speed
+
+    if not rows:
+        return []
+    done = [(row.name, r) for row, r in rows if "ms" in r]
+    lines = ["", "## Learned front end, ms per 640x480 frame by device (issue 10)", "",
+             "ConvPoint keypoints, the detector's mask step (detect + keypoints in boxes), LSD lines (CPU), VLADNet "
+             "(per keyframe); front_end = the first three in a row, as the SLAM front-end thread runs them. Medians "
+             "over TUM teddy frames.", ""]
+    lines += format_speed(done) if done else []
+    for row, r in rows:
+        if "ms" not in r:
+            lines.append(f"- {row.name}: {r.get('error') or r.get('skipped')}")
+    targets = sorted({row.target for row, _ in rows if row.target})
+    return lines + ["", *(f"Target: {t}" for t in targets)]
 
 
 def _stage_table(entries: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:

@@ -13,10 +13,12 @@ there, on the second core, and not part of "total" (the tracking call); "decode"
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import resource
 import statistics
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +64,77 @@ def write_profile(stats_csv: str | Path, out: str | Path) -> dict[str, Any]:
     p = profile(stats_csv)
     Path(out).write_text(json.dumps(p, indent=1) + "\n")
     return p
+
+
+def network_speed(device: str = "auto", frames: int = 20, repeats: int = 3, threads: int = 2,
+                  sequence: str = "tum/rgbd_dataset_freiburg3_teddy", n_features: int = 1500) -> dict[str, Any]:
+    """ms per 640x480 frame of the learned front end, stage by stage, on ``device`` (auto: CUDA when torch sees
+    a GPU): ConvPoint keypoints (int8 on the CPU, float on CUDA; ``n_features`` as the SLAM configs), the shipped
+    detector's mask step (detect + keypoints in boxes), LSD lines (always the CPU) and VLADNet (once per
+    keyframe). "front_end" is one frame through the first three in a row, as ``SlamTracker.frontend`` runs them.
+    Medians over ``frames`` frames of ``sequence`` x ``repeats`` after a warm-up; torch and OpenCV get
+    ``threads`` CPU threads (the project's 2-core target). Needs torch, numpy and cv2 only, so it runs on a
+    machine without the SLAM back end (the GPU machine)."""
+    import cv2
+    import numpy as np
+    import torch
+
+    from vslam.data.tum import TumRgbdSequence
+    from vslam.dynamic.detector import default_weights, load_detector, pick_device
+    from vslam.dynamic.masking import in_boxes
+    from vslam.features.base import FeatureConfig
+    from vslam.features.convpoint import ConvPointExtractor
+    from vslam.features.lines import LineExtractor
+    from vslam.loop.descriptor import default_vladnet_path
+    from vslam.loop.vladnet import VladNetDescriptor
+    from vslam.paths import data_root
+
+    dev = pick_device(device, "speed.device")
+    torch.set_num_threads(threads)
+    cv2.setNumThreads(threads)
+    seq = TumRgbdSequence(data_root() / sequence, sensor="mono")
+    cam = seq.calibration.cam0
+    images = [f.image for f in itertools.islice(seq, frames)]
+    conv = ConvPointExtractor(FeatureConfig(extractor="convpoint", n_features=n_features, device=dev.type))
+    det = load_detector(default_weights(), conf=0.2, device=dev)
+    lsd = LineExtractor()
+    vlad = VladNetDescriptor.from_file(default_vladnet_path(), device=dev.type)
+
+    def mask_step(im: np.ndarray) -> None:
+        in_boxes(conv_uv, det.detect(im).boxes, 4)
+
+    conv_uv = conv.detect(images[0], cam).raw
+    stages = {"convpoint": lambda im: conv.detect(im, cam), "detector": mask_step,
+              "lines": lambda im: lsd.detect(im, cam), "vladnet": vlad.describe,
+              "front_end": lambda im: (conv.detect(im, cam), mask_step(im), lsd.detect(im, cam))}
+    out: dict[str, Any] = {}
+    for name, fn in stages.items():
+        for im in images[:3]:  # warm-up: allocations, kernel selection, cuDNN autotuning
+            fn(im)
+        ms = []
+        for _ in range(repeats):
+            for im in images:
+                t0 = time.perf_counter()
+                fn(im)
+                if dev.type == "cuda":
+                    torch.cuda.synchronize()
+                ms.append((time.perf_counter() - t0) * 1e3)
+        out[name] = statistics.median(ms)
+    name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"CPU, {threads} threads"
+    return {"device": dev.type, "device_name": name, "torch": torch.__version__, "frames": len(images),
+            "repeats": repeats, "ms": out,
+            "peak_gpu_mb": torch.cuda.max_memory_allocated(dev) / 2**20 if dev.type == "cuda" else None}
+
+
+def format_speed(rows: list[tuple[str, dict[str, Any]]]) -> list[str]:
+    """Markdown: one line per measured device."""
+    cols = ("convpoint", "detector", "lines", "vladnet", "front_end")
+    lines = ["| row | device | " + " | ".join(cols) + " | peak GPU memory |", "|---|---|" + "---|" * (len(cols) + 1)]
+    for name, r in rows:
+        mem = "–" if r.get("peak_gpu_mb") is None else f"{r['peak_gpu_mb']:.0f} MB"
+        lines.append(f"| {name} | {r['device_name']} (torch {r['torch']}) | " +
+                     " | ".join(f"{r['ms'][c]:.1f}" for c in cols) + f" | {mem} |")
+    return lines
 
 
 if __name__ == "__main__":  # profile a finished run: python -m vslam.profiling runs/x/stats.csv

@@ -85,6 +85,7 @@ class DynamicConfig:
     detect_every: int = 1
     weights: str = ""  # detector checkpoint (source=detector); "" = the shipped models/detector_esea.pt
     img_size: int = 0  # detector input: the image's longer side resized to this; 0 = the size it was trained at
+    device: str = "auto"  # detector: auto = CUDA when torch sees a GPU (same boxes up to float rounding), cpu, cuda
     geometric: GeometricConfig = field(default_factory=GeometricConfig)
 
     def __post_init__(self) -> None:
@@ -98,5 +99,7 @@ class DynamicConfig:
             raise ConfigError(f"slam.dynamic.detect_every must be >= 1, got {self.detect_every}")
         if self.box_memory_s < 0:
             raise ConfigError("slam.dynamic.box_memory_s must be >= 0")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ConfigError(f"slam.dynamic.device must be auto, cpu or cuda, got {self.device!r}")
         if self.img_size < 0 or self.img_size % 32:
             raise ConfigError(f"slam.dynamic.img_size must be 0 or a positive multiple of 32, got {self.img_size}")

@@ -133,17 +133,17 @@ def paste(sample: Sample, cutouts: list[np.ndarray], label: int, rng: np.random.
         img[Y0:Y1, X0:X1] = (alpha * colour + (1 - alpha) * region).astype(np.uint8)
         hard = part[..., 3] >= 128
         owner[Y0:Y1, X0:X1][hard] = k
-        areas.append((k, int(hard.sum())))
+        areas.append((k, int(hard.sum()), (X0, Y0, X1, Y1)))
         if occluded > 0 and rng.random() < occluded:
             ys, xs = np.nonzero(owner[Y0:Y1, X0:X1] == k)
             if len(xs):
                 box = (X0 + xs.min(), Y0 + ys.min(), X0 + xs.max() + 1, Y0 + ys.max() + 1)
                 occlude(img, sample.image, owner, box, rng)
     boxes, labels = [sample.boxes.reshape(-1, 4)], [sample.labels]
-    for k, area in areas:
-        ys, xs = np.nonzero(owner == k)
+    for k, area, (X0, Y0, X1, Y1) in areas:
+        ys, xs = np.nonzero(owner[Y0:Y1, X0:X1] == k)  # a paste owns pixels of its own window only
         if area == 0 or len(xs) < min_visible * area:
             continue
-        boxes.append(np.array([[xs.min(), ys.min(), xs.max() + 1, ys.max() + 1]], np.float64))
+        boxes.append(np.array([[X0 + xs.min(), Y0 + ys.min(), X0 + xs.max() + 1, Y0 + ys.max() + 1]], np.float64))
         labels.append(np.array([label], np.int64))
     return Sample(img, np.concatenate(boxes).astype(np.float64), np.concatenate(labels))

@@ -22,10 +22,12 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import itertools
 import json
 import logging
 import math
 import time
+from collections import deque
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -34,7 +36,7 @@ import numpy as np
 import torch
 
 from vslam import ddp
-from vslam.dynamic.data import Sample, collate, load_yolo, place, synthetic_samples
+from vslam.dynamic.data import Sample, collate, collate_u8, load_yolo, place, synthetic_samples
 from vslam.dynamic.detector import postprocess, save_checkpoint
 from vslam.dynamic.loss import detection_loss
 from vslam.dynamic.metrics import detection_report
@@ -67,6 +69,7 @@ class TrainConfig:
     seed: int = 0
     device: str = "auto"  # auto | cpu | cuda
     threads: int = 0  # torch CPU threads, 0: torch's default
+    workers: int = 0  # processes drawing batches ahead of the training step (a GPU outruns one); same weights
     ckpt_every: int = 100
     log_every: int = 10
     bn_batches: int = 16
@@ -85,6 +88,7 @@ class TrainConfig:
     weights: str = ""  # also write the final model here in float16 (the committed copy under models/)
     init: str = ""  # start from this checkpoint's weights (a further training round) instead of random ones
     resume: bool = False
+    evaluate: bool = True  # measure the held-out sets at the end (off where their data is not at hand)
     toy: bool = False  # tiny model, tiny images, a few iterations: a smoke test of the whole recipe on CPU
 
     def __post_init__(self) -> None:
@@ -220,18 +224,74 @@ def draw_sample(data: TrainData, cfg: TrainConfig, rng: np.random.Generator) -> 
     return place(s, cfg.img_size, rng)
 
 
-def _batch(data: TrainData, cfg: TrainConfig, it: int, dev: torch.device, rank: int | None = None) -> tuple[torch.Tensor, ...]:
+def _draw(data: TrainData, cfg: TrainConfig, it: int, rank: int | None = None) -> tuple[np.ndarray, ...]:
+    """The batch of iteration ``it`` (uint8 images): a function of (seed, it, rank) alone."""
     rng = np.random.default_rng([cfg.seed, it] if rank is None else [cfg.seed, it, rank])
     if not data.cutouts and cfg.grey == 0:  # the recipe before copy-paste: the same draws, the same weights
         samples = [place(data.samples[i], cfg.img_size, rng) for i in rng.integers(0, len(data.samples), cfg.batch)]
     else:
         samples = [draw_sample(data, cfg, rng) for _ in range(cfg.batch)]
-    return tuple(torch.from_numpy(a).to(dev) for a in collate(samples))
+    return collate_u8(samples)
+
+
+def _on(arrays: tuple[np.ndarray, ...], dev: torch.device) -> tuple[torch.Tensor, ...]:
+    imgs, *rest = (torch.from_numpy(a).to(dev) for a in arrays)
+    return (imgs.float().div_(255.0), *rest)
+
+
+def _batch(data: TrainData, cfg: TrainConfig, it: int, dev: torch.device, rank: int | None = None) -> tuple[torch.Tensor, ...]:
+    return _on(_draw(data, cfg, it, rank), dev)
+
+
+_WORKER: tuple[TrainData, TrainConfig, int | None] | None = None  # set in each batch-drawing child process only
+
+
+def _init_worker(cfg: TrainConfig, rank: int | None) -> None:
+    global _WORKER
+    cv2.setNumThreads(1)  # the pool is the parallelism
+    _WORKER = (training_data(cfg), cfg, rank)  # deterministic: the parent's samples, rebuilt
+
+
+def _draw_in_worker(it: int) -> tuple[np.ndarray, ...]:
+    data, cfg, rank = _WORKER  # type: ignore[misc]
+    return _draw(data, cfg, it, rank)
+
+
+@contextlib.contextmanager
+def _batches(data: TrainData, cfg: TrainConfig, its: range, rank: int | None):
+    """Iterator of the batches of ``its`` in order (uint8 numpy). With ``cfg.workers`` a pool of processes draws
+    them ahead of the training step (a GPU step outruns one process of copy-paste and augmentation); each batch
+    depends on (seed, it, rank) only, so the batches, and the weights, are those of ``workers: 0``. The workers
+    are spawned, not forked (a fork after OpenCV's thread pool has run can deadlock the child), and rebuild the
+    training data themselves (seeded: the same samples) rather than receive a pickled copy."""
+    if cfg.workers <= 0:
+        yield (_draw(data, cfg, it, rank) for it in its)
+        return
+    import multiprocessing as mp
+
+    with mp.get_context("spawn").Pool(cfg.workers, _init_worker, (cfg, rank)) as pool:
+        yield _ahead(pool, its, 2 * cfg.workers)
+
+
+def _ahead(pool, its: range, n: int):
+    """``pool``'s batches of ``its`` in order, at most ``n`` drawn ahead of the consumer (``imap`` would draw
+    without bound: a few GB of batches if the training step is the slower side)."""
+    pending: deque = deque()
+    todo = iter(its)
+    for it in itertools.islice(todo, n):
+        pending.append(pool.apply_async(_draw_in_worker, (it,)))
+    while pending:
+        batch = pending.popleft().get()
+        nxt = next(todo, None)
+        if nxt is not None:
+            pending.append(pool.apply_async(_draw_in_worker, (nxt,)))
+        yield batch
 
 
 def _recipe(d: dict) -> dict:
     """The config fields that change the trained weights (resume must match them)."""
-    return {k: v for k, v in d.items() if k not in ("resume", "threads", "device", "ckpt_every", "log_every", "weights")}
+    return {k: v for k, v in d.items()
+            if k not in ("resume", "threads", "workers", "device", "ckpt_every", "log_every", "weights", "evaluate")}
 
 
 def _lr(cfg: TrainConfig, it: int) -> float:
@@ -291,7 +351,7 @@ def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict
         opt.load_state_dict(ck["optimizer"])
         start = int(ck["iteration"])
         log.info("resumed at iteration %d", start)
-    train_set, val_sets = training_data(cfg), held_out_sets(cfg)
+    train_set, val_sets = training_data(cfg), held_out_sets(cfg) if cfg.evaluate else {}
     log.info("training samples: %d (+ %d backgrounds x %d people cutouts); held-out: %s", len(train_set.samples),
              len(train_set.backgrounds), len(train_set.cutouts), {k: len(v) for k, v in val_sets.items()})
     model.train()
@@ -300,25 +360,27 @@ def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict
         if start == 0 and lead:
             f.write("iteration,lr,loss,box,cls,dfl,seconds\n")
         t0 = time.perf_counter()
-        for it in range(start, cfg.iterations):
-            x, gb, gl, gm = _batch(train_set, cfg, it, dev, rank if n_ranks > 1 else None)
-            for g in opt.param_groups:
-                g["lr"] = _lr(cfg, it)
-            loss, parts = detection_loss(model, net(x), gb, gl, gm)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()  # DDP: gradients averaged over the ranks here
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-            opt.step()
-            if not lead:
-                continue
-            if it % cfg.log_every == 0 or it + 1 == cfg.iterations:
-                f.write(f"{it},{_lr(cfg, it):.6g},{float(loss.detach()):.5f},{parts['box']:.5f},{parts['cls']:.5f},"
-                        f"{parts['dfl']:.5f},{time.perf_counter() - t0:.1f}\n")
-                f.flush()
-                log.info("it %d loss %.4f %s", it, float(loss.detach()), parts)
-            if (it + 1) % cfg.ckpt_every == 0 or it + 1 == cfg.iterations:
-                save_checkpoint(out / "last.pt", model, list(cfg.classes), optimizer=opt.state_dict(),
-                                iteration=it + 1, train=asdict(cfg))
+        batches = _batches(train_set, cfg, range(start, cfg.iterations), rank if n_ranks > 1 else None)
+        with batches as drawn:
+            for it, arrays in zip(range(start, cfg.iterations), drawn):
+                x, gb, gl, gm = _on(arrays, dev)
+                for g in opt.param_groups:
+                    g["lr"] = _lr(cfg, it)
+                loss, parts = detection_loss(model, net(x), gb, gl, gm)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()  # DDP: gradients averaged over the ranks here
+                torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+                opt.step()
+                if not lead:
+                    continue
+                if it % cfg.log_every == 0 or it + 1 == cfg.iterations:
+                    f.write(f"{it},{_lr(cfg, it):.6g},{float(loss.detach()):.5f},{parts['box']:.5f},{parts['cls']:.5f},"
+                            f"{parts['dfl']:.5f},{time.perf_counter() - t0:.1f}\n")
+                    f.flush()
+                    log.info("it %d loss %.4f %s", it, float(loss.detach()), parts)
+                if (it + 1) % cfg.ckpt_every == 0 or it + 1 == cfg.iterations:
+                    save_checkpoint(out / "last.pt", model, list(cfg.classes), optimizer=opt.state_dict(),
+                                    iteration=it + 1, train=asdict(cfg))
     if n_ranks > 1:
         ddp.check_in_sync(model)
     if not lead:

@@ -9,6 +9,16 @@ closing.py     LoopCloser: detect (score floor, temporal consistency), verify, p
 mapio.py       versioned map file (npz + JSON header) for save / load / localisation-only runs
 """
 
-from vslam.loop.config import LoopConfig
+from typing import Any
 
 __all__ = ["LoopConfig"]
+
+
+def __getattr__(name: str) -> Any:
+    """``LoopConfig`` on first use: its pose-graph settings import gtsam, which the networks (``vladnet``, its
+    trainer) must not need (the GPU machine has torch, numpy and cv2 only)."""
+    if name == "LoopConfig":
+        from vslam.loop.config import LoopConfig
+
+        return LoopConfig
+    raise AttributeError(f"module 'vslam.loop' has no attribute {name!r}")

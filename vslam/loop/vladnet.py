@@ -110,22 +110,27 @@ def load_vladnet(path: str | Path) -> VladNet:
 
 
 class VladNetDescriptor:
-    """``PlaceDescriptor`` from the image alone (keypoints unused). One image per call, batched describe_many."""
+    """``PlaceDescriptor`` from the image alone (keypoints unused). One image per call, batched describe_many.
+    ``device`` "auto": CUDA when torch sees a GPU (descriptors equal up to float rounding)."""
 
-    def __init__(self, model: VladNet, threads: int = 0):
-        self.model = model.eval()
+    def __init__(self, model: VladNet, threads: int = 0, device: str | torch.device = "auto"):
+        from vslam.dynamic.detector import pick_device
+
+        self.device = pick_device(device, "loop.device") if isinstance(device, str) else device
+        self.model = model.eval().to(self.device)
         self.dim = model.cfg.out_dim
         self.threads = threads
 
     @classmethod
-    def from_file(cls, path: str | Path) -> VladNetDescriptor:
-        return cls(load_vladnet(path))
+    def from_file(cls, path: str | Path, device: str = "auto") -> VladNetDescriptor:
+        return cls(load_vladnet(path), device=device)
 
     @torch.no_grad()
     def describe_many(self, images: list[np.ndarray], batch: int = 32) -> np.ndarray:
         out = []
         for i in range(0, len(images), batch):
-            out.append(self.model(preprocess(images[i:i + batch], self.model.cfg.input_size)).numpy())
+            x = preprocess(images[i:i + batch], self.model.cfg.input_size).to(self.device)
+            out.append(self.model(x).cpu().numpy())
         return np.concatenate(out).astype(np.float32) if out else np.zeros((0, self.dim), np.float32)
 
     def describe(self, image: np.ndarray | None, features=None) -> np.ndarray:
