@@ -145,3 +145,22 @@ def test_ab_rows_over_composites_run_one_grid_point_per_walker_seed(tmp_path, mo
     suite.write_text(suite.read_text().replace("kind: ab", "kind: run"))
     with pytest.raises(ConfigError, match="seeds: \\[..\\] is for kind ab rows"):
         run_bench(suite, tmp_path / "B.md", jobs_dir=tmp_path / "runs")
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="tests the row of a machine without a GPU")
+def test_gpu_speed_row_is_skipped_without_a_gpu_and_keeps_its_measurement(tmp_path):
+    """A GPU row run where torch sees no GPU neither fails nor overwrites what a GPU machine measured."""
+    suite = tmp_path / "configs" / "suite.yaml"
+    suite.parent.mkdir()
+    suite.write_text("title: t\nrows:\n  - {name: gpu, kind: speed, set: [device=cuda], target: 'fast'}\n")
+    out = run_bench(suite, tmp_path / "B.md", jobs_dir=tmp_path / "runs")
+    assert "- gpu: no CUDA device here" in out.read_text()
+    side = json.loads((tmp_path / "B.json").read_text())
+    side["rows"]["gpu"] = {"result": {"device": "cuda", "device_name": "NVIDIA H200", "torch": "2.11",
+                                      "ms": {"convpoint": 4.6, "detector": 4.7, "lines": 18.8, "vladnet": 1.5,
+                                             "front_end": 28.3}, "peak_gpu_mb": 69.0},
+                           "measured": "2026-12-04 11:47 UTC", "repeat": 1, "machine": "the GPU machine"}
+    (tmp_path / "B.json").write_text(json.dumps(side))
+    text = run_bench(suite, tmp_path / "B.md", jobs_dir=tmp_path / "runs").read_text()
+    assert "| gpu | NVIDIA H200 (torch 2.11) | 4.6 | 4.7 | 18.8 | 1.5 | 28.3 | 69 MB |" in text
+    assert "on the GPU machine" in text and "Target: fast" in text

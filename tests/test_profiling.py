@@ -36,3 +36,14 @@ def test_profile_of_a_tiny_run(tmp_path, capsys, ahead):
     wall = st["total"]["mean_ms"] + st["decode"]["mean_ms"]
     assert p["wall_ms_per_frame"] == pytest.approx(wall)
     assert f"{1e3 / wall:.1f} frames/s" in table.splitlines()[-1]
+
+
+def test_network_speed_of_the_learned_front_end(tum_teddy):
+    """Every stage of the learned front end is timed on the CPU (the GPU row is measured on a GPU machine)."""
+    from vslam.profiling import format_speed, network_speed
+
+    r = network_speed("cpu", frames=2, repeats=1, threads=1)
+    assert r["device"] == "cpu" and r["frames"] == 2 and r["peak_gpu_mb"] is None
+    assert set(r["ms"]) == {"convpoint", "detector", "lines", "vladnet", "front_end"}
+    assert all(v > 0 for v in r["ms"].values())
+    assert format_speed([("x", r)])[2].startswith("| x | CPU, 1 threads")

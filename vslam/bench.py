@@ -678,8 +678,8 @@ def _speed_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     done = [(row.name, r) for row, r in rows if "ms" in r]
     lines = ["", "## Learned front end, ms per 640x480 frame by device (issue 10)", "",
              "ConvPoint keypoints, the detector's mask step (detect + keypoints in boxes), LSD lines (CPU), VLADNet "
-             "(per keyframe); front_end = the first three in a row, as the SLAM front-end thread runs them. Medians "
-             "over TUM teddy frames.", ""]
+             "(per keyframe); front_end = the first three as the SLAM front-end thread runs them (in a row on the CPU; "
+             "on CUDA LSD runs on a thread beside the networks). Medians over TUM teddy frames.", ""]
     lines += format_speed(done) if done else []
     for row, r in rows:
         if "ms" not in r:

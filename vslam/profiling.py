@@ -71,10 +71,13 @@ def network_speed(device: str = "auto", frames: int = 20, repeats: int = 3, thre
     """ms per 640x480 frame of the learned front end, stage by stage, on ``device`` (auto: CUDA when torch sees
     a GPU): ConvPoint keypoints (int8 on the CPU, float on CUDA; ``n_features`` as the SLAM configs), the shipped
     detector's mask step (detect + keypoints in boxes), LSD lines (always the CPU) and VLADNet (once per
-    keyframe). "front_end" is one frame through the first three in a row, as ``SlamTracker.frontend`` runs them.
+    keyframe). "front_end" is one frame through the first three as ``SlamTracker.frontend`` runs them: in a row on
+    the CPU, LSD on a thread beside the networks on CUDA (``SlamConfig.lines_beside_networks``).
     Medians over ``frames`` frames of ``sequence`` x ``repeats`` after a warm-up; torch and OpenCV get
     ``threads`` CPU threads (the project's 2-core target). Needs torch, numpy and cv2 only, so it runs on a
     machine without the SLAM back end (the GPU machine)."""
+    from concurrent.futures import ThreadPoolExecutor
+
     import cv2
     import numpy as np
     import torch
@@ -103,10 +106,17 @@ def network_speed(device: str = "auto", frames: int = 20, repeats: int = 3, thre
     def mask_step(im: np.ndarray) -> None:
         in_boxes(conv_uv, det.detect(im).boxes, 4)
 
+    pool = ThreadPoolExecutor(1) if dev.type == "cuda" else None  # SlamConfig.lines_beside_networks' default
+
+    def front_end(im: np.ndarray) -> None:
+        pending = pool.submit(lsd.detect, im, cam) if pool is not None else None
+        conv.detect(im, cam)
+        mask_step(im)
+        pending.result() if pending is not None else lsd.detect(im, cam)
+
     conv_uv = conv.detect(images[0], cam).raw
     stages = {"convpoint": lambda im: conv.detect(im, cam), "detector": mask_step,
-              "lines": lambda im: lsd.detect(im, cam), "vladnet": vlad.describe,
-              "front_end": lambda im: (conv.detect(im, cam), mask_step(im), lsd.detect(im, cam))}
+              "lines": lambda im: lsd.detect(im, cam), "vladnet": vlad.describe, "front_end": front_end}
     out: dict[str, Any] = {}
     for name, fn in stages.items():
         for im in images[:3]:  # warm-up: allocations, kernel selection, cuDNN autotuning

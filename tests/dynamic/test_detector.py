@@ -161,3 +161,33 @@ def test_committed_tiny_model_finds_a_held_out_synthetic_mover():
     d = det.detect(frame.image)
     assert len(d.boxes) >= 1 and d.class_names[0] == "person"
     assert float(box_iou(torch.tensor(d.boxes[:1]), torch.tensor(frame.boxes, dtype=torch.float64)).max()) > 0.45
+
+
+def test_device_choice():
+    """"auto" is the CPU where torch sees no GPU, asking for CUDA there is a config error naming the field, and
+    the GPU path's input tensor holds the CPU path's values."""
+    from vslam.dynamic.config import DynamicConfig
+    from vslam.dynamic.detector import pick_device, to_tensor, to_tensor_on
+    from vslam.errors import ConfigError
+
+    assert pick_device("cpu").type == "cpu"
+    assert pick_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(ConfigError, match="slam.dynamic.device"):
+        pick_device("tpu")
+    with pytest.raises(ConfigError, match="slam.dynamic.device must be"):
+        DynamicConfig(device="gpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="no CUDA device"):
+            pick_device("cuda")
+    im = np.random.default_rng(0).integers(0, 256, (32, 64, 3), dtype=np.uint8)
+    assert torch.equal(to_tensor([im]), to_tensor_on([im], torch.device("cpu")))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (the CPU path is tested above)")
+def test_cuda_detector_finds_the_cpu_boxes():
+    torch.manual_seed(0)
+    m = YoloDetector(DetectorConfig(**TINY)).eval()
+    img = np.random.default_rng(0).integers(0, 256, (120, 160, 3), dtype=np.uint8)
+    a = Detector(m, ["a", "b"], img_size=96, conf=0.01).detect(img)
+    b = Detector(m, ["a", "b"], img_size=96, conf=0.01, device="cuda").detect(img)
+    np.testing.assert_allclose(a.boxes, b.boxes, atol=1e-2)

@@ -85,3 +85,63 @@ def test_init_starts_from_a_checkpoint(tmp_path):
             torch.testing.assert_close(a[k], b[k], rtol=0, atol=1e-6, msg=k)
     with pytest.raises(tr.ConfigError, match="another architecture"):
         tr.train(dataclasses.replace(again, out=str(tmp_path / "c"), attention="cbam"))
+
+
+def test_batch_workers_give_the_weights_of_the_training_loop(tmp_path):
+    """``workers``: batches drawn by spawned processes (each rebuilding the training data) are the batches the
+    loop would draw itself, so the weights are the same bit for bit; resuming with workers works too."""
+    base = dict(CFG, iterations=6, bn_batches=1, synthetic_val_seeds=())
+    tr.train(tr.TrainConfig(out=str(tmp_path / "a"), **base))
+    tr.train(tr.TrainConfig(out=str(tmp_path / "b"), workers=2, **base))
+    a = torch.load(tmp_path / "a" / "model.pt", weights_only=False)["model"]
+    b = torch.load(tmp_path / "b" / "model.pt", weights_only=False)["model"]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_batches_ahead_keep_order_and_bound():
+    """The prefetch returns the pool's results in iteration order and never has more than n in flight."""
+
+    class Pool:
+        def __init__(self):
+            self.in_flight = self.most = 0
+
+        def apply_async(self, fn, args):
+            self.in_flight += 1
+            self.most = max(self.most, self.in_flight)
+            pool = self
+
+            class Result:
+                def get(self):
+                    pool.in_flight -= 1
+                    return args[0]
+
+            return Result()
+
+    pool = Pool()
+    assert list(tr._ahead(pool, range(3, 20), 4)) == list(range(3, 20))
+    assert pool.most == 4
+
+
+def test_no_evaluation_when_asked(tmp_path):
+    metrics = tr.train(tr.TrainConfig(out=str(tmp_path / "a"), **dict(CFG, iterations=2, bn_batches=1), evaluate=False))
+    assert metrics == {} and (tmp_path / "a" / "model.pt").is_file()
+
+
+def test_hsv_jitter_table_equals_the_per_pixel_formula():
+    """The lookup-table HSV jitter gives the bytes of the per-pixel float formula it replaced (the recipe's
+    samples, hence trained weights, are unchanged)."""
+    import cv2
+
+    from vslam.dynamic.data import _hsv_jitter
+
+    def per_pixel(img, rng, h=0.015, s=0.7, v=0.4):
+        gains = rng.uniform(-1, 1, 3) * (h, s, v) + 1
+        hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV).astype(np.float32)
+        hsv[..., 0] = (hsv[..., 0] * gains[0]) % 180
+        hsv[..., 1:] = np.clip(hsv[..., 1:] * gains[1:], 0, 255)
+        return cv2.cvtColor(hsv.astype(np.uint8), cv2.COLOR_HSV2BGR)
+
+    for seed in range(50):
+        img = np.random.default_rng(seed).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+        np.testing.assert_array_equal(_hsv_jitter(img, np.random.default_rng([seed, 1])),
+                                      per_pixel(img, np.random.default_rng([seed, 1])), err_msg=str(seed))

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -61,6 +62,11 @@ class SlamConfig:
     # computes them for the next frames on its prefetch thread while this one is tracked (OpenCV / torch release
     # the GIL, so it uses a second core). Same numbers either way; off = everything on the tracking thread.
     frontend_thread: bool = True
+    # LSD segments on a thread of their own, beside the networks: on a GPU ConvPoint and the detector take ~5 ms
+    # each and LSD (CPU) ~19 ms (bench row network-speed-gpu), so in a row the front end costs their sum, side by
+    # side the longest. None = when the keypoint network runs on CUDA (the 2-core CPU target has no core to
+    # spare); the same segments either way.
+    lines_beside_networks: bool | None = None
     # Intra-op threads of the networks (torch) while ``Pipeline.run`` lasts; 0 = the CPUs this process may use,
     # less one for the tracking thread when the front end has its own. torch's default (every core) put three
     # busy threads on the 2-core VM: the learned pipeline on the TUM walkers composite ran at 4.4 / 4.5 frames/s,
@@ -127,6 +133,10 @@ class SlamTracker:
         self.lines = (LineSlam(self.map, self.cam, self.stereo_cam, sensor, cfg.lines, cfg.backend, calibration)
                       if cfg.lines.enabled else None)
         self.mapper.lines = self.lines
+        beside = cfg.lines_beside_networks
+        if beside is None:
+            beside = getattr(getattr(self.extractor, "device", None), "type", "cpu") == "cuda"
+        self._lines_pool = ThreadPoolExecutor(1, thread_name_prefix="lines") if self.lines is not None and beside else None
         self._line_feats, self._line_ids = None, None
         self._pre_init_lines: dict[int, LineFeatures] = {}  # monocular: segments of frames before the map exists
         self.loop = None
@@ -166,19 +176,27 @@ class SlamTracker:
         """The image-only stages of ``track``; safe to run on one other thread while ``track`` runs (the
         extractors are then used by that thread alone, the map is not read)."""
         t0 = time.perf_counter()
+        pending = self._lines_pool.submit(self._detect_lines, frame) if self._lines_pool is not None else None
         feats, right = self._extract(frame)
         t1 = time.perf_counter()
-        lines = (self.lines.detect(frame.image, self._line_depth(frame), frame.right if self.sensor == "stereo" else None)
-                 if self.lines is not None else None)
+        lines = self._detect_lines(frame) if pending is None else None
         t2 = time.perf_counter()
         # dynamic filtering drops keypoints first, and rectified stereo matching depends on which are left
         depth = self._depth(frame, feats, right) if self.dynamic is None else None
         t3 = time.perf_counter()
         boxes = self.dynamic.detect(frame) if self.dynamic is not None else None
         t4 = time.perf_counter()
-        ms = {"features": (t1 - t0) * 1e3, "lines": (t2 - t1) * 1e3, "depth": (t3 - t2) * 1e3,
+        if pending is not None:  # beside the networks, "lines" is what was left to wait for after them
+            lines = pending.result()
+        t5 = time.perf_counter()
+        ms = {"features": (t1 - t0) * 1e3, "lines": (t2 - t1 + t5 - t4) * 1e3, "depth": (t3 - t2) * 1e3,
               "detector": (t4 - t3) * 1e3}
         return FrontEnd(feats, right, lines, depth, ms, boxes)
+
+    def _detect_lines(self, frame: Frame) -> LineFeatures | None:
+        if self.lines is None:
+            return None
+        return self.lines.detect(frame.image, self._line_depth(frame), frame.right if self.sensor == "stereo" else None)
 
     def _depth(self, frame: Frame, feats: Features, right: Features | None) -> np.ndarray:
         tc = self.cfg.tracking
@@ -474,6 +492,8 @@ class SlamTracker:
         with lines on also ``map_lines.ply`` (line set: two end points per map line)."""
         from vslam.data.trajectory import Trajectory, write_trajectory
 
+        if self._lines_pool is not None:
+            self._lines_pool.shutdown()
         if self._pending is not None:
             self._flush_mapping()
         self.mapper.close()
