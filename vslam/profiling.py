@@ -83,7 +83,8 @@ def network_speed(device: str = "auto", frames: int = 20, repeats: int = 3, thre
     import torch
 
     from vslam.data.tum import TumRgbdSequence
-    from vslam.dynamic.detector import default_weights, load_detector, pick_device
+    from vslam.device import pick_device
+    from vslam.dynamic.detector import default_weights, load_detector
     from vslam.dynamic.masking import in_boxes
     from vslam.features.base import FeatureConfig
     from vslam.features.convpoint import ConvPointExtractor
@@ -130,6 +131,8 @@ def network_speed(device: str = "auto", frames: int = 20, repeats: int = 3, thre
                     torch.cuda.synchronize()
                 ms.append((time.perf_counter() - t0) * 1e3)
         out[name] = statistics.median(ms)
+    if pool is not None:
+        pool.shutdown()
     name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"CPU, {threads} threads"
     return {"device": dev.type, "device_name": name, "torch": torch.__version__, "frames": len(images),
             "repeats": repeats, "ms": out,

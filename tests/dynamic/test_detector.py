@@ -166,19 +166,20 @@ def test_committed_tiny_model_finds_a_held_out_synthetic_mover():
 def test_device_choice():
     """"auto" is the CPU where torch sees no GPU, asking for CUDA there is a config error naming the field, and
     the GPU path's input tensor holds the CPU path's values."""
+    from vslam.device import pick_device
     from vslam.dynamic.config import DynamicConfig
-    from vslam.dynamic.detector import pick_device, to_tensor, to_tensor_on
+    from vslam.dynamic.detector import to_tensor, to_tensor_on
     from vslam.errors import ConfigError
 
-    assert pick_device("cpu").type == "cpu"
-    assert pick_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
-    with pytest.raises(ConfigError, match="slam.dynamic.device"):
-        pick_device("tpu")
+    assert pick_device("cpu", "x").type == "cpu"
+    assert pick_device("auto", "x").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(ConfigError, match="slam.dynamic.device must be"):
+        pick_device("tpu", "slam.dynamic.device")
     with pytest.raises(ConfigError, match="slam.dynamic.device must be"):
         DynamicConfig(device="gpu")
     if not torch.cuda.is_available():
-        with pytest.raises(ConfigError, match="no CUDA device"):
-            pick_device("cuda")
+        with pytest.raises(ConfigError, match="features.device: cuda requested but torch sees no CUDA device"):
+            pick_device("cuda", "features.device")
     im = np.random.default_rng(0).integers(0, 256, (32, 64, 3), dtype=np.uint8)
     assert torch.equal(to_tensor([im]), to_tensor_on([im], torch.device("cpu")))
 

@@ -71,15 +71,6 @@ def postprocess(boxes: torch.Tensor, probs: torch.Tensor, conf: float, iou: floa
     return out
 
 
-def pick_device(name: str, field: str = "slam.dynamic.device") -> torch.device:
-    """"auto": CUDA when torch sees a GPU, else the CPU; "cuda" without a GPU is a config error."""
-    if name not in ("auto", "cpu", "cuda"):
-        raise ConfigError(f"{field} must be auto, cpu or cuda, got {name!r}")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError(f"{field}: cuda requested but torch sees no CUDA device")
-    return torch.device("cuda" if name != "cpu" and torch.cuda.is_available() else "cpu")
-
-
 class Detector:
     """``detect(image)``: BGR or grey uint8 image -> Detections in that image's pixels. Runs a fused copy of
     ``model`` (``fuse_for_inference``) on ``device``; the model passed in is left as it was. On CUDA the network,

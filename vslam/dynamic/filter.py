@@ -33,10 +33,11 @@ class DynamicFilter:
         self.geo = GeometricCheck(cfg.geometric, cam) if cfg.geometric.enabled else None
         self.detector = detector
         if cfg.source == "detector" and detector is None:
-            from vslam.dynamic.detector import default_weights, load_detector, pick_device
+            from vslam.device import pick_device
+            from vslam.dynamic.detector import default_weights, load_detector
 
             self.detector = load_detector(cfg.weights or default_weights(), conf=cfg.score_threshold,
-                                          device=pick_device(cfg.device))
+                                          device=pick_device(cfg.device, "slam.dynamic.device"))
             if cfg.img_size:  # wide frames (KITTI 1226x370): people stay large enough at a larger input
                 self.detector.img_size = cfg.img_size
         self._recent: deque[tuple[float, np.ndarray]] = deque()  # (timestamp, boxes) of this and recent frames

@@ -303,12 +303,10 @@ class ConvPointExtractor:
     descriptor_kind = "float"
 
     def __init__(self, cfg):
-        from vslam.errors import ConfigError
+        from vslam.device import pick_device
 
         self.cfg = cfg
-        if cfg.device == "cuda" and not torch.cuda.is_available():
-            raise ConfigError("features.device: cuda requested but torch sees no CUDA device")
-        self.device = torch.device("cuda" if cfg.device in ("auto", "cuda") and torch.cuda.is_available() else "cpu")
+        self.device = pick_device(cfg.device, "features.device")
         # integer kernels are CPU-only: on CUDA the float network runs (bf16 if asked)
         self.model = _load_extractor_model(cfg.weights or default_weights(), cfg.int8 and self.device.type == "cpu")
         self.model.to(self.device)

@@ -114,7 +114,7 @@ class VladNetDescriptor:
     ``device`` "auto": CUDA when torch sees a GPU (descriptors equal up to float rounding)."""
 
     def __init__(self, model: VladNet, threads: int = 0, device: str | torch.device = "auto"):
-        from vslam.dynamic.detector import pick_device
+        from vslam.device import pick_device
 
         self.device = pick_device(device, "loop.device") if isinstance(device, str) else device
         self.model = model.eval().to(self.device)
