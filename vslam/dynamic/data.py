@@ -91,7 +91,7 @@ def synthetic_samples(seeds: tuple[int, ...], n_frames: int, stride: int, person
 def _hsv_jitter(img: np.ndarray, rng: np.random.Generator, h: float = 0.015, s: float = 0.7, v: float = 0.4) -> np.ndarray:
     """Random gains on hue, saturation and value. Each output byte is a function of its input byte alone, so the
     float arithmetic runs once per possible value (a 256-entry table per channel, ``cv2.LUT``) instead of once
-    per pixel: the same bytes as the per-pixel formula (``tests/dynamic/test_data.py``), 10x cheaper."""
+    per pixel: the same bytes as the per-pixel formula (``tests/dynamic/test_train.py``), 7.5x cheaper."""
     gains = rng.uniform(-1, 1, 3) * (h, s, v) + 1
     levels = np.arange(256, dtype=np.float32)
     table = np.empty((256, 3), np.float32)  # float32 like the per-pixel formula's image, then truncated to bytes
