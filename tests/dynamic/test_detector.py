@@ -165,10 +165,10 @@ def test_committed_tiny_model_finds_a_held_out_synthetic_mover():
 
 def test_device_choice():
     """"auto" is the CPU where torch sees no GPU, asking for CUDA there is a config error naming the field, and
-    the GPU path's input tensor holds the CPU path's values."""
+    the network input is the pixels scaled to [0, 1], on whichever device."""
     from vslam.device import pick_device
     from vslam.dynamic.config import DynamicConfig
-    from vslam.dynamic.detector import to_tensor, to_tensor_on
+    from vslam.dynamic.detector import to_tensor
     from vslam.errors import ConfigError
 
     assert pick_device("cpu", "x").type == "cpu"
@@ -181,7 +181,8 @@ def test_device_choice():
         with pytest.raises(ConfigError, match="features.device: cuda requested but torch sees no CUDA device"):
             pick_device("cuda", "features.device")
     im = np.random.default_rng(0).integers(0, 256, (32, 64, 3), dtype=np.uint8)
-    assert torch.equal(to_tensor([im]), to_tensor_on([im], torch.device("cpu")))
+    reference = torch.from_numpy(im).permute(2, 0, 1)[None].float() / 255.0
+    assert torch.equal(to_tensor([im]), reference) and torch.equal(to_tensor([im], torch.device("cpu")), reference)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (the CPU path is tested above)")

@@ -43,15 +43,10 @@ def letterbox(image: np.ndarray, size: int) -> tuple[np.ndarray, float, tuple[in
     return im, r, (left, top)
 
 
-def to_tensor(images_rgb: list[np.ndarray]) -> torch.Tensor:
-    """List of (H,W,3) uint8 RGB, same size -> (B,3,H,W) float32 in [0,1]."""
-    return torch.from_numpy(np.stack(images_rgb)).permute(0, 3, 1, 2).float().div_(255.0)
-
-
-def to_tensor_on(images_rgb: list[np.ndarray], device: torch.device) -> torch.Tensor:
-    """``to_tensor`` with the uint8 pixels sent to ``device`` first (a quarter of the bytes over the bus) and
-    scaled there: the same float32 values."""
-    return torch.from_numpy(np.stack(images_rgb)).to(device, non_blocking=False).permute(0, 3, 1, 2).float().div_(255.0)
+def to_tensor(images_rgb: list[np.ndarray], device: torch.device | None = None) -> torch.Tensor:
+    """List of (H,W,3) uint8 RGB, same size -> (B,3,H,W) float32 in [0,1] on ``device`` (default the CPU). The
+    uint8 pixels go to the device first (a quarter of the bytes over the bus) and are scaled there."""
+    return torch.from_numpy(np.stack(images_rgb)).to(device or "cpu").permute(0, 3, 1, 2).float().div_(255.0)
 
 
 @torch.no_grad()
@@ -86,8 +81,7 @@ class Detector:
         rgb = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB if image.ndim == 2 else cv2.COLOR_BGR2RGB)
         im, r, (px, py) = letterbox(rgb, self.img_size)
         with torch.inference_mode():
-            x = to_tensor([im]) if self.device.type == "cpu" else to_tensor_on([im], self.device)
-            boxes, probs = decode(self.model, self.model(x))
+            boxes, probs = decode(self.model, self.model(to_tensor([im], self.device)))
             b, s, c = (t.cpu() for t in postprocess(boxes, probs, self.conf, self.iou)[0])
         b = b.numpy().astype(np.float64)
         b[:, [0, 2]] = (b[:, [0, 2]] - px) / r
