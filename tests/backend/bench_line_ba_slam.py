@@ -1,4 +1,5 @@
-"""Back-end cost of lines inside SLAM (not a test; ``python -m tests.backend.bench_line_ba_slam [frames]``).
+"""Back-end cost of lines inside SLAM (not a test;
+``python -m tests.backend.bench_line_ba_slam [frames] [rgbd|stereo] [seed]``).
 
 Runs the SLAM tracker with lines on the synthetic corridor and solves every local BA twice, interleaved on
 the same problem: without its lines and with them. The ratio of CPU times is the back-end overhead of the
@@ -27,7 +28,7 @@ from vslam.features.lines import LineConfig  # noqa: E402
 from vslam.tracking.slam import SlamConfig, SlamTracker  # noqa: E402
 
 
-def main(frames: int = 150) -> None:
+def main(frames: int = 150, sensor: str = "rgbd", seed: int = 0) -> None:
     solve = ba.local_bundle_adjustment
     cpu: dict[str, list[float]] = {"points": [], "lines": []}
 
@@ -43,8 +44,8 @@ def main(frames: int = 150) -> None:
         return res
 
     local_mapping.local_bundle_adjustment = both
-    seq = SyntheticSequence(SyntheticConfig(scene="corridor", n_frames=300, n_movers=0))
-    st = SlamTracker(seq.calibration, "rgbd", SlamConfig(lines=LineConfig(enabled=True)))
+    seq = SyntheticSequence(SyntheticConfig(scene="corridor", n_frames=300, n_movers=0, seed=seed), sensor=sensor)
+    st = SlamTracker(seq.calibration, sensor, SlamConfig(lines=LineConfig(enabled=True)))
     for i in range(frames):
         st.track(seq.frame(i))
     p, q = 1e3 * np.array(cpu["points"]), 1e3 * np.array(cpu["lines"])
@@ -53,4 +54,5 @@ def main(frames: int = 150) -> None:
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 150)
+    a = sys.argv[1:]
+    main(int(a[0]) if a else 150, a[1] if len(a) > 1 else "rgbd", int(a[2]) if len(a) > 2 else 0)

@@ -329,3 +329,40 @@ def test_ba_with_end_point_depths_flags_a_wrong_depth_and_line_chi2_counts_its_r
         from vslam.backend.line_ba import line_terms
 
         line_terms(dataclasses.replace(prob.lines, mode="landmark"), set(range(len(poses))), K_L, 1.345)
+
+
+def test_window_factor_rows_give_the_null_space_projected_system():
+    """The window hands GTSAM 6K rows J, r whose normal equations J^T J, J^T r are those of the null-space
+    projected rows Q^T J_x, Q^T r of every line (the per-line Schur complement), with and without depths;
+    lines without pose information (seen twice, no depths) add nothing."""
+    from vslam.backend.line_window import LineWindow
+
+    rng = np.random.default_rng(11)
+    poses, _, lp = _line_scene(rng, n_lines=10)
+    segs = lp.obs_seg + rng.normal(0, 0.5, lp.obs_seg.shape)
+    rho = _end_inverse_depths(lp, poses, segs) * rng.uniform(0.99, 1.01, (len(segs), 2))
+    rho[::5, 0] = np.nan
+    lines = np.array([lp.lines[j] for j in sorted(lp.lines)])
+    keep = ~((lp.obs_line == 3) & (lp.obs_kf >= 2))  # line 3 seen twice only
+    Twc = np.array([S.perturb_pose(rng, T, 0.005, 0.2) for T in poses])
+    for kw in ({}, {"rho": rho[keep], "depth_weight": CAM.fx * 0.08 / 0.05}):
+        win = LineWindow(lines, lp.obs_line[keep], lp.obs_kf[keep], segs[keep], [X(k) for k in range(len(poses))],
+                         K_L, 1.0, 1.345, **kw)
+        r, Jl, Jx = win._residuals(win._geom(Twc), win.U, win.w, True)
+        H = np.zeros((6 * len(poses),) * 2)
+        g = np.zeros(6 * len(poses))
+        for j in range(win.n_lines):
+            o = np.flatnonzero(win.ol == j)
+            if win.count[j] < win.min_views:
+                continue
+            A = Jl[o].reshape(-1, 4)
+            Q = np.linalg.qr(A, mode="complete")[0][:, 4:]
+            Jfull = np.zeros((len(o), win.k, len(poses), 6))
+            Jfull[np.arange(len(o)), :, win.op[o]] = Jx[o]
+            Jp, rp = Q.T @ Jfull.reshape(len(o) * win.k, -1), Q.T @ r[o].reshape(-1)
+            H += Jp.T @ Jp
+            g += Jp.T @ rp
+        rr, J = win._reduced(Twc, win.U, win.w)
+        assert J.shape == (6 * len(poses), 6 * len(poses)) and np.abs(H).max() > 1.0
+        np.testing.assert_allclose(J.T @ J, H, atol=1e-9 * np.abs(H).max())
+        np.testing.assert_allclose(J.T @ rr, g, atol=1e-9 * np.abs(g).max())

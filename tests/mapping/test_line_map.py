@@ -199,3 +199,41 @@ def test_stereo_end_point_depths_from_the_right_images_matching_segment():
     rho = ls.stereo_inverse_depths(lf, rf)
     np.testing.assert_allclose(rho[:2], 1.0 / ends[:2, :, 2], rtol=1e-9)
     assert np.isnan(rho[2]).all()
+
+
+def test_stereo_keyframe_creates_lines_from_the_rigs_end_point_depths():
+    """Stereo lines come from one keyframe, as RGB-D ones from the depth map: the rig's end-point depths place
+    the segment in the world (exact for noiseless segments); no line where an end point has no depth or too
+    small a disparity (``rig_min_disparity_px``)."""
+    from vslam.backend.ba import StereoCamera
+    from vslam.data.types import Calibration, PinholeCamera
+    from vslam.features.lines import LineConfig, LineFeatures
+
+    cam = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
+    T_b1 = np.eye(4)
+    T_b1[0, 3] = 0.1
+    calib = Calibration(cam0=cam, cam1=cam, T_body_cam1=T_b1)
+    ls = LineSlam(None, cam, StereoCamera(500.0, 500.0, 320.0, 240.0, 0.1), "stereo", LineConfig(create="depth"), None, calib)
+    auto = LineSlam(None, cam, StereoCamera(500.0, 500.0, 320.0, 240.0, 0.1), "stereo", LineConfig(), None, calib)
+    assert auto.from_depth and auto.from_two_views  # "auto" with a measuring rig: the rig, then two views
+    rng = np.random.default_rng(3)
+    T = _pose(rng)
+    ends_c = np.array([[[-0.6, -0.5, 3.0], [-0.4, 0.6, 3.5]],
+                       [[0.3, -0.4, 4.0], [0.9, 0.5, 2.5]],
+                       [[-0.8, 0.3, 3.0], [-0.7, 0.9, 3.0]],      # no depth at one end (unmatched there)
+                       [[0.1, 0.2, 30.0], [0.3, 1.9, 30.0]]])     # 30 m: 1.7 px of disparity
+    uv = ends_c @ K.T
+    segs = (uv[..., :2] / uv[..., 2:]).reshape(-1, 4)
+    rho = 1.0 / ends_c[..., 2]
+    rho[2, 1] = np.nan
+    lf = LineFeatures(segs, segs, np.zeros((4, 8), np.float32), np.hypot(segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1]), rho)
+    assert ls.add_keyframe(0, T, lf, None, None) == 2
+    made = {ml.observations[0]: ml for ml in ls.lmap.lines.values()}
+    assert set(made) == {0, 1}
+    for i, ml in made.items():
+        ends_w = ends_c[i] @ T[:3, :3].T + T[:3, 3]
+        np.testing.assert_allclose(ml.ends, ends_w, atol=1e-9)
+        np.testing.assert_allclose(np.abs(ml.L), np.abs(pl.normalize(pl.from_points(ends_w[0], ends_w[1]))), atol=1e-9)
+        assert not ml.two_view
+    mono = LineSlam(None, cam, StereoCamera(500.0, 500.0, 320.0, 240.0, 0.0), "mono", LineConfig(), None, calib)
+    assert not mono.from_depth and mono.from_two_views

@@ -94,11 +94,15 @@ class LineConfig:
     # the nearer side 2 px off (centimetres nearer than the segment on a wall seen at a slant): corridor seeds 4-7
     # without depth rows 0.0049 -> 0.0045 m, with them (0.1 px, then in tracking only) 0.0050 -> 0.0043 m
     create_extrapolate: bool = True
-    # where new line landmarks come from: "depth" (the RGB-D depth map along the segment), "two_view" (a new
-    # keyframe's segments matched to a covisible keyframe's by epipolar overlap, planes intersected), "both"
-    # (depth first, two-view for what it left); "auto": depth for RGB-D, two-view for stereo and mono. RGB-D
-    # corridor with "both": 0.0040 m, as with "depth"
+    # where new line landmarks come from: "depth" (RGB-D: the depth map along the segment; stereo: the end-point
+    # depths the rig measured, ``stereo_depth_sigma_px``), "two_view" (a new keyframe's segments matched to a
+    # covisible keyframe's by epipolar overlap, planes intersected), "both" (depth first, two-view for what it
+    # left); "auto": depth for RGB-D, both for stereo, two-view for mono. RGB-D corridor with "both": 0.0040 m,
+    # as with "depth". Stereo, validation corridors (2026-12-04, seeds 4-7 / 10-13, mean ATE m; points only
+    # 0.0097 / 0.0091): two_view 0.0101 / 0.0074, depth 0.0064 / 0.0048, both 0.0057 / 0.0045 (the rig misses
+    # lines along its epipolar lines and far ones; two views over the motion take those)
     create: Literal["auto", "depth", "two_view", "both"] = "auto"
+    rig_min_disparity_px: float = 2.0  # stereo "depth" creation: both end points at least this disparity
     tri_min_epi_angle_deg: float = 5.0  # two-view: a segment must cross the epipolar lines at least this steeply
     tri_min_angle_deg: float = 2.0  # ... and the two back-projected planes meet at least at this angle
     # ... and each end point is seen from the two centres at this angle. Chosen on the stereo corridor's

@@ -7,9 +7,9 @@ here so the point-only path is untouched when it is off:
 - ``track``: after the point tracker, project the local map's lines with its pose, match them
   (``match_lines``), and refine the pose on points + lines (``backend.pose_lines``).
 - ``add_keyframe``: keep the keyframe's segments, attach the tracked line observations, create new lines
-  from the RGB-D depth map: depth sampled along each unmatched segment on both sides of the edge (the nearer
-  side: an occluding edge belongs to the foreground), a 3-D line fitted to the samples and accepted when
-  they lie on it.
+  from the RGB-D depth map (depth sampled along each unmatched segment on both sides of the edge, each side
+  extrapolated to it, a 3-D line fitted to the samples and accepted when they lie on it) or, stereo, from the
+  end-point depths the rig measured (the segment's match in the right image, ``stereo_inverse_depths``).
 - ``triangulate`` (local mapping, monocular / stereo, or with ``create: both``): the new keyframe's unmatched
   segments matched to its covisible keyframes' unmatched segments by descriptor + epipolar overlap
   (``features.lines.match_epipolar_segments``), the two back-projected planes intersected
@@ -143,17 +143,20 @@ class LineSlam:
         self.lmap = LineMap()
         self.extractor = LineExtractor(cfg)
         self.K_L = pl.line_projection_matrix(cam.fx, cam.fy, cam.cx, cam.cy)
-        create = cfg.create if cfg.create != "auto" else ("depth" if sensor == "rgbd" else "two_view")
-        if create in ("depth", "both") and sensor != "rgbd":
-            log.warning("lines: create=%s needs an RGB-D depth map; %s lines come from two views", create, sensor)
-            create = "two_view"
-        self.from_depth, self.from_two_views = create in ("depth", "both"), create in ("two_view", "both")
         # whitening of an end point's inverse-depth residual: fx b / sigma, a disparity (RGB-D: the virtual
         # baseline of the points' depth; stereo: the rig's) -- 0: lines are image-only
         sigma = {"rgbd": cfg.depth_sigma_px, "stereo": cfg.stereo_depth_sigma_px}.get(sensor, 0.0)
         rig = sensor != "stereo" or (calibration is not None and calibration.cam1 is not None
                                      and calibration.T_cam0_cam1 is not None)
         self.depth_weight = stereo_cam.fx * stereo_cam.baseline / sigma if sigma > 0 and stereo_cam.baseline > 0 and rig else 0.0
+        # "depth": the RGB-D depth map, or the stereo rig's measured end-point depths (``stereo_inverse_depths``)
+        measured = sensor == "rgbd" or (sensor == "stereo" and self.depth_weight > 0)
+        create = cfg.create if cfg.create != "auto" else {"rgbd": "depth", "stereo": "both"}.get(sensor, "two_view") if measured else "two_view"
+        if create in ("depth", "both") and not measured:
+            log.warning("lines: create=%s needs an RGB-D depth map or a stereo rig with stereo_depth_sigma_px > 0; "
+                        "%s lines come from two views", create, sensor)
+            create = "two_view"
+        self.from_depth, self.from_two_views = create in ("depth", "both"), create in ("two_view", "both")
         self.cam1 = calibration.cam1 if sensor == "stereo" and self.depth_weight > 0 else None
         if self.cam1 is not None:  # the rig, once: right pixels in the left camera's units, F, the matcher's gate
             self.T_c0_c1 = np.asarray(calibration.T_cam0_cam1, dtype=np.float64)
@@ -257,16 +260,35 @@ class LineSlam:
             for i in np.flatnonzero(line_ids >= 0):
                 if int(line_ids[i]) in self.lmap.lines:
                     self.lmap.add_observation(int(line_ids[i]), kf_id, int(i))
-        if depth_map is None or not self.from_depth or len(lf) == 0:
+        if not self.from_depth or len(lf) == 0 or (depth_map is None and (self.sensor != "stereo" or lf.rho is None)):
             return 0
         free = np.flatnonzero(self.lmap.kf_ids[kf_id] < 0)
         free = free[np.argsort(-lf.length[free], kind="stable")]
-        ok, L, ends = self.fit_from_depth(lf.raw[free], lf.segs[free], depth_map, T_world_cam, extrapolate=self.cfg.create_extrapolate)
+        if depth_map is not None:
+            ok, L, ends = self.fit_from_depth(lf.raw[free], lf.segs[free], depth_map, T_world_cam, extrapolate=self.cfg.create_extrapolate)
+        else:
+            ok, L, ends = self.from_rig(lf.segs[free], lf.rho[free], T_world_cam)
         n = 0
         for j in np.flatnonzero(ok)[: self.cfg.max_new_lines].tolist():  # the longest segments that fit
             self.lmap.add_line(L[j], ends[j], kf_id, int(free[j]))
             n += 1
         return n
+
+    def from_rig(self, seg: np.ndarray, rho: np.ndarray, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """3-D lines of stereo segments (S,4) whose end points the rig measured (rho (S,2) inverse depths,
+        ``stereo_inverse_depths``) -> (ok (S,), L (S,6), ends (S,2,3)) as ``fit_from_depth``; ok needs both end
+        points at a disparity of at least ``rig_min_disparity_px`` (a far end point's depth is a guess)."""
+        seg, rho = np.asarray(seg, dtype=np.float64).reshape(-1, 4), np.asarray(rho, dtype=np.float64).reshape(-1, 2)
+        S = len(seg)
+        out_ok, out_L, out_e = np.zeros(S, bool), np.full((S, 6), np.nan), np.full((S, 2, 3), np.nan)
+        with np.errstate(invalid="ignore"):
+            ok = np.all(np.isfinite(rho) & (rho * self.stereo_cam.fx * self.stereo_cam.baseline >= self.cfg.rig_min_disparity_px), axis=1)
+        if ok.any():
+            a, b = pl.end_points_from_depth(seg[ok], 1.0 / rho[ok, 0], 1.0 / rho[ok, 1], T_world_cam, self.cam.K)
+            out_L[ok] = pl.normalize(pl.from_points(a, b))
+            out_e[ok] = np.stack([a, b], axis=1)
+            out_ok = ok & np.isfinite(out_L).all(axis=1)
+        return out_ok, out_L, out_e
 
     def fit_from_depth(self, raw: np.ndarray, seg: np.ndarray, depth_map: np.ndarray, T_world_cam: np.ndarray,
                        extrapolate: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
