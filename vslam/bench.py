@@ -45,7 +45,7 @@ PER_FRAME = ("features", "depth", "pose", "total")  # run on every frame: median
 class BenchRow:
     name: str
     kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch", "place", "features", "detector", "ab",
-                  "speed"] = "run"
+                  "speed", "line_ba"] = "run"
     config: str = ""  # pipeline YAML, relative to the suite file's folder's parent (the repo root) or absolute
     set: tuple[str, ...] = ()  # KEY=VALUE overrides
     note: str = ""
@@ -256,6 +256,10 @@ def execute_job(kind: str, config: str | None, overrides: dict[str, Any], out_di
         return _job_detector(overrides)
     if kind == "speed":
         return _job_speed(overrides)
+    if kind == "line_ba":
+        from vslam.profiling import line_ba_cost
+
+        return line_ba_cost(config, overrides, out_dir)
     fn = _job_run if kind == "run" else _job_render
     return fn(config, overrides, out_dir)
 
@@ -407,7 +411,7 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
             plan.append((row, ab_jobs(cfg, over, grid, parse_overrides(list(row.treatment)), str(jobs_dir / row.name))))
             ab_labels[row.name] = labels
         else:  # a place / features row is deterministic and reports no timing that repeats would steady
-            n = 1 if row.kind in ("place", "features", "detector", "speed") else max(1, repeat)
+            n = 1 if row.kind in ("place", "features", "detector", "speed", "line_ba") else max(1, repeat)
             plan.append((row, [Job(row.kind, cfg, over, str(jobs_dir / f"{row.name}-{i}")) for i in range(n)]))
     results = iter(run_jobs([j for _, jobs in plan for j in jobs], workers, ray))
     parallel = {"parallel": workers if ray is None else f"ray:{workers}"} if workers > 1 or ray is not None else {}
@@ -507,7 +511,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     ]
     for row, e in entries:
         r, repeat = e["result"], int(e["repeat"])
-        if row.kind in ("fusion", "imu_preint", "batch", "place", "features", "detector", "ab", "speed"):  # own tables below
+        if row.kind in ("fusion", "imu_preint", "batch", "place", "features", "detector", "ab", "speed", "line_ba"):  # own tables below
             continue
         if "error" in r:
             lines.append(md_failed_row(row, r["error"], 12))
@@ -539,6 +543,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     lines += _features_table([(row, e["result"]) for row, e in entries if row.kind == "features"])
     lines += _detector_table([(row, e["result"]) for row, e in entries if row.kind == "detector"])
     lines += _speed_table([(row, e["result"]) for row, e in entries if row.kind == "speed"])
+    lines += _line_ba_table([(row, e["result"]) for row, e in entries if row.kind == "line_ba"])
     lines += batch_table([(row, e["result"]) for row, e in entries if row.kind == "batch"])
     lines += ab_table([(row, e["result"]) for row, e in entries if row.kind == "ab"])
     notes = [f"- **{row.name}**: {row.note}" for row, _ in entries if row.note]
@@ -686,6 +691,24 @@ def _speed_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
             lines.append(f"- {row.name}: {r.get('error') or r.get('skipped')}")
     targets = sorted({row.target for row, _ in rows if row.target})
     return lines + ["", *(f"Target: {t}" for t in targets)]
+
+
+def _line_ba_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
+    """Issue 6: back-end CPU of lines, each local BA solved without and with its lines (``profiling.line_ba_cost``)."""
+    if not rows:
+        return []
+    lines = md_section("Back-end cost of lines (issue 6, `line_ba`)",
+                       "A SLAM run with lines in which every local BA that has lines is solved twice on the same window: "
+                       "without its lines, then with them (the run goes on with the latter). CPU ms of the solving thread "
+                       "per BA, and the ratio of the sums; free of the load and keyframe differences between two runs.",
+                       ["row", "local BAs", "CPU ms per BA, points only", "with lines", "ratio", "ATE m (with lines)", "target"])
+    for row, r in rows:
+        if "error" in r or not r.get("bas"):
+            lines.append(md_failed_row(row, r.get("error", "no local BA with lines"), 7))
+            continue
+        lines.append(f"| {row.name} | {r['bas']} | {r['points_ms']:.1f} | {r['lines_ms']:.1f} | **{r['ratio']:.2f}x** | "
+                     f"{_fmt(r.get('ate_rmse'), '.4f')} | {row.target} |")
+    return lines
 
 
 def _stage_table(entries: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:

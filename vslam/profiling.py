@@ -22,6 +22,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 #: pipeline order; sub-stages of mapping are indented in the table
 ORDER = ("decode", "features", "detector", "dynamic", "lines", "depth", "pose", "mapping", "map_create",
          "map_fuse_cull", "map_ba", "map_wait", "map_loop", "total")
@@ -66,6 +68,45 @@ def write_profile(stats_csv: str | Path, out: str | Path) -> dict[str, Any]:
     return p
 
 
+def line_ba_cost(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
+    """Issue 6: the back-end cost of lines. A SLAM run with lines (``config`` + ``overrides``) in which every
+    local BA that has lines is solved twice on the same window, first without its lines (its result discarded),
+    then with them; CPU time of the solving thread (``time.thread_time``: the front-end thread's work is not
+    counted). Two separate runs would compare different windows, keyframes and machine load; this compares
+    like with like. -> {bas, points_ms, lines_ms (means per BA), ratio (sum with / sum without), ate_rmse}."""
+    import dataclasses
+
+    import vslam.mapping.local_mapping as local_mapping
+    from vslam.config import deep_merge
+    from vslam.pipeline import Pipeline, PipelineConfig
+
+    solve = local_mapping.local_bundle_adjustment
+    cpu: dict[str, list[float]] = {"points": [], "lines": []}
+
+    def both(problem, camera, cfg):
+        if problem.lines is None:
+            return solve(problem, camera, cfg)
+        t = time.thread_time()
+        solve(dataclasses.replace(problem, lines=None), camera, cfg)
+        cpu["points"].append(time.thread_time() - t)
+        t = time.thread_time()
+        res = solve(problem, camera, cfg)
+        cpu["lines"].append(time.thread_time() - t)
+        return res
+
+    cfg = PipelineConfig.load(config, deep_merge(overrides, {"output": {"dir": out_dir},
+                                                             "slam": {"lines": {"enabled": True}}}))
+    local_mapping.local_bundle_adjustment = both  # this job's own process: the pipeline's BA calls go through it
+    try:
+        res = Pipeline(cfg).run()
+    finally:
+        local_mapping.local_bundle_adjustment = solve
+    p, q = 1e3 * np.array(cpu["points"]), 1e3 * np.array(cpu["lines"])
+    return {"bas": len(p), "points_ms": float(p.mean()) if len(p) else None, "lines_ms": float(q.mean()) if len(q) else None,
+            "ratio": float(q.sum() / p.sum()) if len(p) and p.sum() > 0 else None,
+            "ate_rmse": None if res.eval is None else res.eval.ate.translation.rmse}
+
+
 def network_speed(device: str = "auto", frames: int = 20, repeats: int = 3, threads: int = 2,
                   sequence: str = "tum/rgbd_dataset_freiburg3_teddy", n_features: int = 1500) -> dict[str, Any]:
     """ms per 640x480 frame of the learned front end, stage by stage, on ``device`` (auto: CUDA when torch sees
@@ -79,7 +120,6 @@ def network_speed(device: str = "auto", frames: int = 20, repeats: int = 3, thre
     from concurrent.futures import ThreadPoolExecutor
 
     import cv2
-    import numpy as np
     import torch
 
     from vslam.data.tum import TumRgbdSequence
