@@ -89,3 +89,33 @@ def test_networks_get_the_cores_the_tracking_thread_leaves_and_threads_are_resto
         Pipeline(cfg).run(seq, progress=lambda k, n: seen.append(torch.get_num_threads()))
         assert seen == [want] * 3
         assert torch.get_num_threads() == before
+
+
+def test_run_limits_numpy_blas_threads_and_the_ba_worker_follows():
+    """SlamConfig.blas_threads caps numpy's BLAS threads while a run lasts (restored after); the async BA worker
+    process started meanwhile gets the same cap."""
+    from pathlib import Path as _P
+
+    from threadpoolctl import threadpool_info
+
+    from vslam.backend.worker import BAWorker
+    from vslam.pipeline import blas_threads
+    from vslam.tracking.slam import SlamConfig
+
+    def counts():
+        return [i["num_threads"] for i in threadpool_info() if i.get("user_api") == "blas"]
+
+    before = counts()
+    assert before
+    with blas_threads(SlamConfig(blas_threads=1)):
+        assert counts() == [1] * len(before)
+        w = BAWorker()
+        w.start()
+        try:
+            env = _P(f"/proc/{w._proc.pid}/environ").read_bytes().split(b"\0")
+            assert b"OPENBLAS_NUM_THREADS=1" in env
+        finally:
+            w.close()
+    assert counts() == before
+    with blas_threads(SlamConfig(blas_threads=0)):
+        assert counts() == before

@@ -175,6 +175,18 @@ def _cpus() -> int:
 
 
 @contextlib.contextmanager
+def blas_threads(cfg: SlamConfig | None) -> Iterator[None]:
+    """numpy's BLAS thread count for a run (``SlamConfig.blas_threads``), restored afterwards."""
+    if cfg is None or cfg.blas_threads <= 0:
+        yield
+        return
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=cfg.blas_threads, user_api="blas"):
+        yield
+
+
+@contextlib.contextmanager
 def torch_threads(cfg: SlamConfig | None) -> Iterator[None]:
     """torch's intra-op thread count for a run (``SlamConfig.torch_threads``), restored afterwards; nothing when
     the run loaded no network (torch not imported)."""
@@ -227,7 +239,8 @@ class Pipeline:
         paths["stats"] = stats_path
         t_start = time.perf_counter()
         try:
-            with torch_threads(cfg.slam if cfg.tracker == "slam" else None), open(stats_path, "w", newline="") as fstats:
+            slam_cfg = cfg.slam if cfg.tracker == "slam" else None
+            with torch_threads(slam_cfg), blas_threads(slam_cfg), open(stats_path, "w", newline="") as fstats:
                 sw = csv.writer(fstats)
                 sw.writerow(STAT_COLUMNS)
                 ahead = isinstance(odo, SlamTracker) and cfg.slam.frontend_thread

@@ -55,6 +55,12 @@ class BAWorker:
             env = dict(os.environ)
             root = str(Path(__file__).resolve().parents[2])  # the folder holding the vslam package
             env["PYTHONPATH"] = os.pathsep.join([root] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+            from threadpoolctl import threadpool_info
+
+            # numpy's BLAS threads as the parent has them now (``SlamConfig.blas_threads`` while a run lasts)
+            blas = [i["num_threads"] for i in threadpool_info() if i.get("user_api") == "blas"]
+            if blas:
+                env["OPENBLAS_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(min(blas))
             self._proc = subprocess.Popen([sys.executable, "-m", "vslam.backend.worker"], stdin=subprocess.PIPE,
                                           stdout=subprocess.PIPE, env=env)
             self._waiting = 0

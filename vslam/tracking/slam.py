@@ -73,6 +73,13 @@ class SlamConfig:
     # with one torch thread 5.4 / 5.0 (alternating runs, 2026-12-03; the detector 93 -> 60 ms a frame).
     # The thread count changes float summation order, hence trajectories a little (ATE 0.0174 vs 0.0175 m there).
     torch_threads: int = 0
+    # numpy's BLAS (OpenBLAS) threads while ``Pipeline.run`` lasts (and in the BA worker process); 0 = its default
+    # (every core). Its matrices here are small (BA windows, batched 4x4 line solves): a second OpenBLAS thread
+    # spins beside them and takes the core the front-end thread needs. Corridor RGB-D with lines, 20 local BAs
+    # (2026-12-04): CPU per BA with lines 122.9 ms on the solving thread + 72.7 ms spun by the BLAS thread, 84.4 ms
+    # in all with one thread; points-only BA 60.2 vs 55.6 ms. Same trajectories byte for byte (RGB-D corridor with
+    # lines, TUM teddy).
+    blas_threads: int = 1
 
 
 @dataclass
