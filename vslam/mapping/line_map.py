@@ -151,7 +151,8 @@ class LineSlam:
         self.depth_weight = stereo_cam.fx * stereo_cam.baseline / sigma if sigma > 0 and stereo_cam.baseline > 0 and rig else 0.0
         # "depth": the RGB-D depth map, or the stereo rig's measured end-point depths (``stereo_inverse_depths``)
         measured = sensor == "rgbd" or (sensor == "stereo" and self.depth_weight > 0)
-        create = cfg.create if cfg.create != "auto" else {"rgbd": "depth", "stereo": "both"}.get(sensor, "two_view") if measured else "two_view"
+        auto = {"rgbd": "depth", "stereo": "both"}.get(sensor, "two_view") if measured else "two_view"
+        create = auto if cfg.create == "auto" else cfg.create
         if create in ("depth", "both") and not measured:
             log.warning("lines: create=%s needs an RGB-D depth map or a stereo rig with stereo_depth_sigma_px > 0; "
                         "%s lines come from two views", create, sensor)
