@@ -261,7 +261,7 @@ class LineSlam:
             for i in np.flatnonzero(line_ids >= 0):
                 if int(line_ids[i]) in self.lmap.lines:
                     self.lmap.add_observation(int(line_ids[i]), kf_id, int(i))
-        if not self.from_depth or len(lf) == 0 or (depth_map is None and (self.sensor != "stereo" or lf.rho is None)):
+        if not self.from_depth or len(lf) == 0 or (depth_map is None and lf.rho is None):  # nothing measured
             return 0
         free = np.flatnonzero(self.lmap.kf_ids[kf_id] < 0)
         free = free[np.argsort(-lf.length[free], kind="stable")]

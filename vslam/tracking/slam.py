@@ -362,8 +362,9 @@ class SlamTracker:
         return ms
 
     def _line_depth(self, frame: Frame) -> np.ndarray | None:
-        """The depth map a keyframe's new lines are measured with (RGB-D); stereo and mono lines come from two
-        keyframes in local mapping (``LineSlam.triangulate``)."""
+        """The depth map a keyframe's new lines are measured with (RGB-D); stereo lines come from the end-point
+        depths the rig measured (``LineSlam.from_rig``) and from two keyframes, mono lines from two keyframes in
+        local mapping (``LineSlam.triangulate``)."""
         return frame.depth if self.sensor == "rgbd" else None
 
     def _drop_moving(self, res: TrackResult, feats: Features, depth: np.ndarray, ur: np.ndarray) -> tuple[Features, np.ndarray, np.ndarray]:
