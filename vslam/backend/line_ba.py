@@ -45,9 +45,6 @@ class LineProblem:
     prior_sigma_rad: float = 1.0  # regularises only: a pixel of end-point distance weighs ~1e4 times more
     chi2: float = 5.991  # 95 % of chi2(2), two end-point distances
     mode: Literal["window", "landmark"] = "window"  # one structureless factor, or line variables (see line_terms)
-    # "window": line LM steps per factor evaluation, warm-started (1 vs 3: same results in the tests and
-    # ``bench_lines``, the callback ~2.5x cheaper)
-    inner_iterations: int = 1
     obs_rho: np.ndarray | None = None
     depth_weight: float = 0.0
 
@@ -91,7 +88,7 @@ def line_terms(lp: LineProblem, kf_in_graph: set[int], K_L: np.ndarray, huber_k:
         win = LineWindow(np.array([lp.lines[j] for j in ids.tolist()]).reshape(-1, 6),
                          np.array([idx[j] for j in ln[ok].tolist()], dtype=np.int64),
                          np.array([pos[k] for k in kf[ok].tolist()], dtype=np.int64), seg[ok],
-                         [X(k) for k in pose_keys], K_L, lp.sigma, huber_k, lp.inner_iterations, T_body_cam,
+                         [X(k) for k in pose_keys], K_L, lp.sigma, huber_k, T_body_cam,
                          np.asarray(lp.obs_rho, dtype=np.float64).reshape(-1, 2)[ok] if lp.has_depth else None,
                          lp.depth_weight)
         win.line_ids = ids.tolist()  # window row -> line id
@@ -119,7 +116,7 @@ def line_estimates(est: gtsam.Values, handle: LineWindow | list[int]) -> dict[in
     if isinstance(handle, LineWindow):
         Twc = handle.camera_poses(est)
         if len(Twc):
-            handle.U, handle.w, _ = handle.refine_lines(Twc, 1)  # LM's last linearisation left them converged
+            handle.U, handle.w, _ = handle.lines_at(Twc)
         return dict(zip(handle.line_ids, handle.lines()))
     return {j: lf.line_from_values(est, j) for j in handle}
 
