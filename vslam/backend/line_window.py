@@ -5,7 +5,8 @@ Why: a Python ``CustomFactor`` per line costs ~160-350 us per call on this machi
 3000-observation window 3.5-5x slower than its points alone, and a 6-keyframe window with 25 lines x 6 views
 and 12 points 20-40x (``python -m tests.backend.bench_lines``, CPU time). Here every line of the window is
 handled in one vectorised numpy callback, and the lines are not GTSAM variables at all (like GTSAM's smart
-factors); the same 60-line window then costs 1.3-1.7x its points alone (233 -> 392 ms CPU on an idle machine).
+factors); the same 60-line window then costs 1.2x its points alone (2026-12-04: 59.8 -> 72.7 ms CPU; 1.3-1.7x before
+the back-substitution below).
 
 1. *Lines at the poses*: at the first evaluation each line's 4-DoF orthonormal form (``plucker``) gets
    ``_PRIME_ITERATIONS`` (2) Levenberg-Marquardt steps on its Huber (IRLS) end-point distances at the initial
@@ -26,8 +27,9 @@ factors); the same 60-line window then costs 1.3-1.7x its points alone (233 -> 3
    rows (K poses: the Cholesky factor of H + 1e-10 max(diag H) I). Building the k n - 4 projected rows per line with a
    QR per group of lines instead cost more (stereo corridor, 17 local BAs: the factor's linearisations 16.8 -> 11.9 ms
    CPU per BA) and gave GTSAM a factor of hundreds of rows.
-   The reduced gradient carries -D^T S^-1/2 J_l^T r, so it is exact at lines that are not yet optimal too; error()
-   is the Huber cost of the line observations. A line seen twice without depths has 4 residuals for its 4 DoF and no pose information.
+   The reduced gradient carries -D^T S^-1/2 J_l^T r, so it is exact at lines that are not yet optimal too;
+   error() is the Huber cost of the line observations. A line seen twice without depths has 4 residuals for its
+   4 DoF and no pose information.
 
 With measured end-point depths (RGB-D / stereo, ``rho``) each observation has k = 4 rows (two inverse-depth rows,
 zero where not measured), so a line seen twice already constrains the poses; d rho / d(n_c, d_c) from
@@ -96,11 +98,11 @@ class LineWindow:
         inf = np.flatnonzero(self.informative)
         self._pose_order = inf[np.argsort(self.op[inf], kind="stable")]
         ops = self.op[self._pose_order]
-        self._pose_runs = [(int(i), self.k * int(np.searchsorted(ops, i)), self.k * int(np.searchsorted(ops, i, "right")))
-                           for i in np.unique(ops)]
+        lo, hi = np.searchsorted(ops, np.unique(ops)), np.searchsorted(ops, np.unique(ops), "right")
+        self._pose_runs = [(int(ops[a]), self.k * int(a), self.k * int(b)) for a, b in zip(lo, hi)]
         self._primed = False
         self._memo: tuple | None = None  # (poses bytes, linearisation, anchor U, w, lines there): ``lines_at``
-        self._lin: tuple | None = None  # (poses, S^+, g_l, J_l^T J_x) of the last ``_reduced``: ``_predict``
+        self._lin: tuple | None = None  # (poses, U, w, S^+, g_l, J_l^T J_x) of the last ``_reduced``: ``_predict``
         self.T_bc = None if T_body_cam is None else np.asarray(T_body_cam, dtype=np.float64)
         # a right perturbation of the body pose is Ad(T_cam_body) of the camera's ((omega, v) order, as GTSAM's)
         self._ad_cb = None if self.T_bc is None else gtsam.Pose3(np.linalg.inv(self.T_bc)).AdjointMap()
@@ -120,8 +122,8 @@ class LineWindow:
         """Robust whitened residuals (M,k) and, with jac, dr/d(line 4) (M,k,4) and dr/d(pose 6) (M,k,6) (None
         without ``pose_jac``: the inner line solve needs none).
 
-        Written with einsum / component cross products over the M observations: batched (M,3,3) matmuls
-        cost ~4x more here (numpy loops over tiny matrices).
+        Batched matmuls and component cross products over the M observations: on these small per-observation
+        matrices numpy 2's matmul costs a half to a quarter of the same einsum (e.g. (M,4,6) x (M,6,4): 64 vs 145 us).
         """
         R, C = geom
         wo = w[self.ol]
@@ -273,7 +275,8 @@ class LineWindow:
         per line whichever of that and the anchor line costs less. -> (U, w, cost) as ``refine_lines``."""
         T0, U, w, Sp, gl, B = self._lin
         R0T = T0[:, :3, :3].transpose(0, 2, 1)  # dx to first order: T = T0 Exp(omega, v)
-        dx = np.concatenate([_so3_log_batch(R0T @ Twc[:, :3, :3]), (R0T @ (Twc[:, :3, 3] - T0[:, :3, 3])[:, :, None])[:, :, 0]], axis=1)
+        dt = (R0T @ (Twc[:, :3, 3] - T0[:, :3, 3])[:, :, None])[:, :, 0]
+        dx = np.concatenate([_so3_log_batch(R0T @ Twc[:, :3, :3]), dt], axis=1)
         rhs = gl + np.add.reduceat((B @ dx[self.op][:, :, None])[:, :, 0], self.starts, axis=0)
         delta = -(Sp @ rhs[:, :, None])[:, :, 0]
         delta *= np.minimum(1.0, _MAX_STEP / (np.linalg.norm(delta, axis=1) + 1e-300))[:, None]
