@@ -40,6 +40,10 @@ SIDECAR_VERSION = 1
 # stats.csv columns shown in the per-stage table, in pipeline order; other ms_* columns follow
 STAGES = ("features", "depth", "pose", "mapping", "map_create", "map_fuse_cull", "map_ba", "map_wait", "map_loop")
 PER_FRAME = ("features", "depth", "pose", "total")  # run on every frame: median ms/frame
+# kinds run once whatever --repeat says (deterministic, or repeating their measurement inside the job)
+SINGLE_RUN_KINDS = ("place", "features", "detector", "speed", "line_ba")
+# kinds with a table of their own below the SLAM table
+OWN_TABLE_KINDS = ("fusion", "imu_preint", "batch", "ab") + SINGLE_RUN_KINDS
 
 @dataclass(frozen=True)
 class BenchRow:
@@ -411,7 +415,7 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
             plan.append((row, ab_jobs(cfg, over, grid, parse_overrides(list(row.treatment)), str(jobs_dir / row.name))))
             ab_labels[row.name] = labels
         else:  # a place / features row is deterministic and reports no timing that repeats would steady
-            n = 1 if row.kind in ("place", "features", "detector", "speed", "line_ba") else max(1, repeat)
+            n = 1 if row.kind in SINGLE_RUN_KINDS else max(1, repeat)
             plan.append((row, [Job(row.kind, cfg, over, str(jobs_dir / f"{row.name}-{i}")) for i in range(n)]))
     results = iter(run_jobs([j for _, jobs in plan for j in jobs], workers, ray))
     parallel = {"parallel": workers if ray is None else f"ray:{workers}"} if workers > 1 or ray is not None else {}
@@ -511,7 +515,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     ]
     for row, e in entries:
         r, repeat = e["result"], int(e["repeat"])
-        if row.kind in ("fusion", "imu_preint", "batch", "place", "features", "detector", "ab", "speed", "line_ba"):  # own tables below
+        if row.kind in OWN_TABLE_KINDS:
             continue
         if "error" in r:
             lines.append(md_failed_row(row, r["error"], 12))
