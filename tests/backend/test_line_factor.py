@@ -179,16 +179,22 @@ def test_ba_flags_line_outlier_and_keeps_lines_off_by_default():
     assert res.line_inliers is None and res.lines == {}
 
 
+def _noisy_window(seed: int, noise_px: float):
+    """-> (rng, true poses, LineWindow of 8 lines over them, segments with ``noise_px`` of noise, Huber 1.345)."""
+    from vslam.backend.line_window import LineWindow
+
+    rng = np.random.default_rng(seed)
+    poses, _, lp = _line_scene(rng, n_lines=8)
+    segs = lp.obs_seg + rng.normal(0, noise_px, lp.obs_seg.shape)
+    win = LineWindow(np.array([lp.lines[j] for j in sorted(lp.lines)]), lp.obs_line, lp.obs_kf, segs,
+                     [X(k) for k in range(len(poses))], K_L, 1.0, 1.345)
+    return rng, poses, win
+
+
 def test_window_factor_gradient_and_error_match_the_line_cost():
     """The structureless window factor: at converged lines its error is the lines' Huber cost and J^T r is
     the gradient of that error over the poses (null-space projection keeps the Schur complement exact)."""
-    from vslam.backend.line_window import LineWindow
-
-    rng = np.random.default_rng(5)
-    poses, _, lp = _line_scene(rng, n_lines=8)
-    segs = lp.obs_seg + rng.normal(0, 0.5, lp.obs_seg.shape)
-    win = LineWindow(np.array([lp.lines[j] for j in sorted(lp.lines)]), lp.obs_line, lp.obs_kf, segs,
-                     [X(k) for k in range(len(poses))], K_L, 1.0, 1.345)
+    rng, poses, win = _noisy_window(5, 0.5)
     f = win.factor()
     v = gtsam.Values()
     for k, T in enumerate(poses):
@@ -269,13 +275,7 @@ def test_window_factor_back_substitutes_its_lines_for_a_pose_step():
     """Between linearisations the lines follow the poses by back-substitution (the line part of the joint
     Gauss-Newton step): for a small pose step they reach nearly the cost of lines re-converged at the new poses,
     far below the cost of the anchor lines there."""
-    from vslam.backend.line_window import LineWindow
-
-    rng = np.random.default_rng(8)
-    poses, _, lp = _line_scene(rng, n_lines=8)
-    segs = lp.obs_seg + rng.normal(0, 0.3, lp.obs_seg.shape)
-    win = LineWindow(np.array([lp.lines[j] for j in sorted(lp.lines)]), lp.obs_line, lp.obs_kf, segs,
-                     [X(k) for k in range(len(poses))], K_L, 1.0, 1.345)
+    rng, poses, win = _noisy_window(8, 0.3)
     f = win.factor()
     v0, v1 = gtsam.Values(), gtsam.Values()
     for k, T in enumerate(poses):
