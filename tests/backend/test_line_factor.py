@@ -362,7 +362,7 @@ def test_ba_with_end_point_depths_flags_a_wrong_depth_and_line_chi2_counts_its_r
 def test_window_factor_rows_give_the_null_space_projected_system():
     """The window hands GTSAM 6K rows J, r whose normal equations J^T J, J^T r are those of the null-space
     projected rows Q^T J_x, Q^T r of every line (the per-line Schur complement), with and without depths;
-    lines without pose information (seen twice, no depths) add nothing."""
+    lines without pose information (seen twice, no depths) add nothing; held poses leave the factor."""
     from vslam.backend.line_window import LineWindow
 
     rng = np.random.default_rng(11)
@@ -394,3 +394,11 @@ def test_window_factor_rows_give_the_null_space_projected_system():
         assert J.shape == (6 * len(poses), 6 * len(poses)) and np.abs(H).max() > 1.0
         np.testing.assert_allclose(J.T @ J, H, atol=1e-9 * np.abs(H).max())
         np.testing.assert_allclose(J.T @ rr, g, atol=1e-9 * np.abs(g).max())
+        # poses the graph holds (fixed keyframes) leave the factor: the free poses' block of the same system
+        held = LineWindow(lines, lp.obs_line[keep], lp.obs_kf[keep], segs[keep], [X(k) for k in range(len(poses))],
+                          K_L, 1.0, 1.345, held={X(0), X(2)}, **kw)
+        free = np.concatenate([np.arange(6 * k, 6 * k + 6) for k in range(len(poses)) if k not in (0, 2)])
+        rh, Jh = held._reduced(Twc, held.U, held.w)
+        assert Jh.shape == (len(free), len(free)) and held.factor().keys() == [X(k) for k in (1, 3, 4, 5)]
+        np.testing.assert_allclose(Jh.T @ Jh, H[np.ix_(free, free)], atol=1e-9 * np.abs(H).max())
+        np.testing.assert_allclose(Jh.T @ rh, g[free], atol=1e-9 * np.abs(g).max())

@@ -258,7 +258,7 @@ def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: Backe
     line_facs, line_ids = [], []
     if problem.lines is not None:  # line factors join both LM rounds (their Huber kernel is per observation)
         line_facs, line_values, line_ids = line_terms(problem.lines, set(win.kf_ids[used_k].tolist()),
-                                                      camera_K_L(camera), cfg.huber_k)
+                                                      camera_K_L(camera), cfg.huber_k, held_kf=set(anchors))
         values.insert(line_values)
     graph = _graph(facs + holds + line_facs)
     t1 = time.perf_counter()

@@ -62,11 +62,13 @@ class LineProblem:
 
 
 def line_terms(lp: LineProblem, kf_in_graph: set[int], K_L: np.ndarray, huber_k: float,
-               T_body_cam: np.ndarray | None = None) -> tuple[list[gtsam.NonlinearFactor], gtsam.Values, LineWindow | list[int]]:
+               T_body_cam: np.ndarray | None = None, held_kf: set[int] = frozenset()) -> tuple[list[gtsam.NonlinearFactor], gtsam.Values, LineWindow | list[int]]:
     """Factors, initial values and a handle for ``line_estimates``: lines with >= 2 observations in
     keyframes of the graph. ``mode`` "window": one structureless factor (``line_window``), no values;
     "landmark": a ``line_factor`` + weak priors per line, lines as LU/LW values. T_body_cam: the graph's
-    pose variables are body poses (visual-inertial BA; "window" mode only)."""
+    pose variables are body poses (visual-inertial BA; "window" mode only). held_kf: keyframes the graph holds
+    fixed (tight priors): the window factor leaves their columns out (a local BA window holds about two thirds of
+    the keyframes that see its lines) and reads their poses as constants."""
     if T_body_cam is not None and lp.mode != "window":
         raise ValueError("line landmarks on body poses (visual-inertial BA) need LineProblem.mode 'window'")
     if lp.has_depth and lp.mode != "window":
@@ -90,7 +92,7 @@ def line_terms(lp: LineProblem, kf_in_graph: set[int], K_L: np.ndarray, huber_k:
                          np.array([pos[k] for k in kf[ok].tolist()], dtype=np.int64), seg[ok],
                          [X(k) for k in pose_keys], K_L, lp.sigma, huber_k, T_body_cam,
                          np.asarray(lp.obs_rho, dtype=np.float64).reshape(-1, 2)[ok] if lp.has_depth else None,
-                         lp.depth_weight)
+                         lp.depth_weight, {X(k) for k in held_kf})
         win.line_ids = ids.tolist()  # window row -> line id
         f = win.factor()
         return ([f] if f is not None else []), values, win

@@ -24,7 +24,8 @@ the back-substitution below).
    onto the left null space of J_l (the rows Q^T J_x, Q^T r of MSCKF's null-space projection, Mourikis &
    Roumeliotis 2007, give the same system). It is summed over the window's lines as
    J_x^T J_x - D^T D with D = S^-1/2 J_l^T J_x (S = J_l^T J_l, 4 x 4 per line) and handed to GTSAM as 6K
-   rows (K poses: the Cholesky factor of H + 1e-10 max(diag H) I). Building the k n - 4 projected rows per line with a
+   rows (K poses: the Cholesky factor of H + 1e-10 max(diag H) I). Poses the graph holds (a local BA's fixed
+   keyframes, about two thirds of those that see its lines) are not among the K: their poses are read as constants. Building the k n - 4 projected rows per line with a
    QR per group of lines instead cost more (stereo corridor, 17 local BAs: the factor's linearisations 16.8 -> 11.9 ms
    CPU per BA) and gave GTSAM a factor of hundreds of rows.
    The reduced gradient carries -D^T S^-1/2 J_l^T r, so it is exact at lines that are not yet optimal too;
@@ -64,7 +65,8 @@ class LineWindow:
 
     def __init__(self, lines: np.ndarray, obs_line: np.ndarray, obs_pose: np.ndarray, segs: np.ndarray,
                  pose_keys: list[int], K_L: np.ndarray, sigma: float, huber_k: float | None,
-                 T_body_cam: np.ndarray | None = None, rho: np.ndarray | None = None, depth_weight: float = 0.0):
+                 T_body_cam: np.ndarray | None = None, rho: np.ndarray | None = None, depth_weight: float = 0.0,
+                 held: frozenset[int] | set[int] = frozenset()):
         self.n_lines = len(lines)
         self.line_ids: list[int] = list(range(self.n_lines))  # caller's ids of the rows of ``lines()``
         self.U, self.w = pl.to_orthonormal(np.asarray(lines, dtype=np.float64).reshape(-1, 6))
@@ -93,13 +95,18 @@ class LineWindow:
         self.informative = self.count[self.ol] >= self.min_views  # (M,) observations of such lines
         # rank bound of the lines' information on the poses (k n - 4 per line); the factor has 6K rows when > 0
         self.dim = int(np.sum(np.maximum(self.k * self.count[self.count >= self.min_views] - 4, 0)))
-        self.rows = 6 * len(pose_keys)
-        # the informative observations sorted by pose, and each pose's rows among them (``_reduced``)
-        inf = np.flatnonzero(self.informative)
+        # the factor's variables: the poses the graph does not hold (``held`` keys: fixed keyframes, held by a
+        # tight prior; their columns would only carry constants). Their position among them, -1 for held ones.
+        self.free = np.array([i for i, k in enumerate(self.pose_keys) if k not in held], dtype=np.int64)
+        self._free_pos = np.full(len(self.pose_keys), -1, np.int64)
+        self._free_pos[self.free] = np.arange(len(self.free))
+        self.rows = 6 * len(self.free)
+        # the informative observations of free poses sorted by pose, and each pose's rows among them (``_reduced``)
+        inf = np.flatnonzero(self.informative & (self._free_pos[self.op] >= 0))
         self._pose_order = inf[np.argsort(self.op[inf], kind="stable")]
         ops = self.op[self._pose_order]
         lo, hi = np.searchsorted(ops, np.unique(ops)), np.searchsorted(ops, np.unique(ops), "right")
-        self._pose_runs = [(int(ops[a]), self.k * int(a), self.k * int(b)) for a, b in zip(lo, hi)]
+        self._pose_runs = [(int(self._free_pos[ops[a]]), self.k * int(a), self.k * int(b)) for a, b in zip(lo, hi)]
         self._primed = False
         self._memo: tuple | None = None  # (poses bytes, linearisation, anchor U, w, lines there): ``lines_at``
         self._lin: tuple | None = None  # (poses, U, w, S^+, g_l, J_l^T J_x) of the last ``_reduced``: ``_predict``
@@ -220,10 +227,10 @@ class LineWindow:
         return out
 
     def _reduced(self, Twc: np.ndarray, U: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The lines' Gauss-Newton system on the poses, every line eliminated (module docstring, 2.) -> (r (6K,),
-        J (6K, 6K)) with J^T J = sum_lines J_x^T P J_x and J^T r = sum_lines J_x^T P r."""
+        """The lines' Gauss-Newton system on the free poses, every line eliminated (module docstring, 2.) -> (r (6K,),
+        J (6K, 6K)), K free poses, with J^T J = sum_lines J_x^T P J_x and J^T r = sum_lines J_x^T P r."""
         r, Jl, Jx = self._residuals(self._geom(Twc), U, w, True)
-        K = len(self.pose_keys)
+        K = len(self.free)
         JlT = Jl.transpose(0, 2, 1)
         S = np.add.reduceat(JlT @ Jl, self.starts, axis=0)  # (N,4,4) per line
         gl = np.add.reduceat((JlT @ r[:, :, None])[:, :, 0], self.starts, axis=0)
@@ -233,9 +240,9 @@ class LineWindow:
         B = JlT @ Jx  # (M,4,6) J_l^T J_x per observation
         Sp = Sm.transpose(0, 2, 1) @ Sm  # S^+
         self._lin = (Twc, U, w, Sp, gl, B)  # for the back-substitution (``_predict``)
-        Bf = np.zeros((self.n_lines, 4, K, 6))  # B of the informative lines as (4N, 6K)
-        inf = np.flatnonzero(self.informative)
-        Bf[self.ol[inf], :, self.op[inf], :] = B[inf]  # a line is seen once per keyframe: no two share a block
+        Bf = np.zeros((self.n_lines, 4, K, 6))  # B of the informative lines on the free poses as (4N, 6K)
+        inf = self._pose_order
+        Bf[self.ol[inf], :, self._free_pos[self.op[inf]], :] = B[inf]  # a line is seen once per keyframe
         Bf = Bf.reshape(self.n_lines, 4, 6 * K)
         E = (Sp @ Bf).reshape(4 * self.n_lines, 6 * K)  # S^+ B per line
         Bf = Bf.reshape(4 * self.n_lines, 6 * K)
@@ -294,7 +301,7 @@ class LineWindow:
     # -- GTSAM glue ---------------------------------------------------------------------------------------------
     def factor(self) -> gtsam.CustomFactor | None:
         """The structureless factor on the window's poses; None when no line has ``min_views`` views."""
-        if self.dim == 0:
+        if self.dim == 0 or self.rows == 0:
             return None
 
         def error(this: gtsam.CustomFactor, v: gtsam.Values, H: list | None) -> np.ndarray:
@@ -316,12 +323,13 @@ class LineWindow:
             r, J = self._reduced(Twc, U, w)
             if H is not None:
                 self.U, self.w = U, w  # re-anchor
-                for i in range(len(self.pose_keys)):
+                for i in range(len(self.free)):
                     Ji = J[:, 6 * i : 6 * i + 6]
                     H[i] = np.ascontiguousarray(Ji if self._ad_cb is None else Ji @ self._ad_cb)
             return r
 
-        return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(self.rows), self.pose_keys, error)
+        keys = [self.pose_keys[i] for i in self.free.tolist()]  # held poses are read from the values all the same
+        return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(self.rows), keys, error)
 
 
 def _so3_exp_batch(w: np.ndarray) -> np.ndarray:
