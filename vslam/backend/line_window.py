@@ -25,9 +25,9 @@ the back-substitution below).
    Roumeliotis 2007, give the same system). It is summed over the window's lines as
    J_x^T J_x - D^T D with D = S^-1/2 J_l^T J_x (S = J_l^T J_l, 4 x 4 per line) and handed to GTSAM as 6K
    rows (K poses: the Cholesky factor of H + 1e-10 max(diag H) I). Poses the graph holds (a local BA's fixed
-   keyframes, about two thirds of those that see its lines) are not among the K: their poses are read as constants. Building the k n - 4 projected rows per line with a
-   QR per group of lines instead cost more (stereo corridor, 17 local BAs: the factor's linearisations 16.8 -> 11.9 ms
-   CPU per BA) and gave GTSAM a factor of hundreds of rows.
+   keyframes, about two thirds of those that see its lines) are not among the K: their poses are read as constants.
+   Building the k n - 4 projected rows per line with a QR per group of lines instead cost more (stereo corridor,
+   17 local BAs: the factor's linearisations 16.8 -> 11.9 ms CPU per BA) and gave GTSAM a factor of hundreds of rows.
    The reduced gradient carries -D^T S^-1/2 J_l^T r, so it is exact at lines that are not yet optimal too;
    error() is the Huber cost of the line observations. A line seen twice without depths has 4 residuals for its
    4 DoF and no pose information.
