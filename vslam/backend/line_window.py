@@ -51,8 +51,8 @@ from vslam.backend.line_factor import _cross, _huber, _skew_stack
 from vslam.geometry import plucker as pl
 from vslam.geometry.se3 import gather_Rt
 
-_MAX_STEP = 0.05  # rad, largest (theta, phi) step of one inner iteration
-_PRIME_ITERATIONS = 2  # inner iterations at the first evaluation; later ones warm-start from the last linearisation
+_MAX_STEP = 0.05  # rad, largest (theta, phi) step of a line: an LM step of ``refine_lines`` or a back-substitution
+_PRIME_ITERATIONS = 2  # LM steps per line at the first evaluation; later ones are back-substituted (``_predict``)
 
 
 class LineWindow:
@@ -234,7 +234,7 @@ class LineWindow:
         JlT = Jl.transpose(0, 2, 1)
         S = np.add.reduceat(JlT @ Jl, self.starts, axis=0)  # (N,4,4) per line
         gl = np.add.reduceat((JlT @ r[:, :, None])[:, :, 0], self.starts, axis=0)
-        lam, V = np.linalg.eigh(S)  # S^-1/2 as a pseudo-inverse root: a degenerate line projects as its QR would
+        lam, V = np.linalg.eigh(S)  # S^+ via a pseudo-inverse root S^-1/2: a degenerate line projects as its QR would
         keep = lam > 1e-12 * np.maximum(lam[:, -1:], 1e-300)
         Sm = (np.where(keep, 1.0 / np.sqrt(np.where(keep, lam, 1.0)), 0.0)[:, :, None] * V.transpose(0, 2, 1))  # (N,4,4)
         B = JlT @ Jx  # (M,4,6) J_l^T J_x per observation
@@ -305,8 +305,8 @@ class LineWindow:
             return None
 
         def error(this: gtsam.CustomFactor, v: gtsam.Values, H: list | None) -> np.ndarray:
-            # The lines are re-solved from the state stored at the last *linearisation* (an accepted LM
-            # point), never from a trial point, so error() is a function of the poses alone, as LM assumes.
+            # The lines follow the poses from the last *linearisation* (an accepted LM point, ``lines_at``),
+            # never from a trial point, so error() is a function of the poses alone, as LM assumes.
             Twc = self.camera_poses(v)
             if not self._primed:  # first call (LM's initial error): converge the lines at the initial poses
                 self.U, self.w, cost = self.refine_lines(Twc, _PRIME_ITERATIONS)
@@ -321,11 +321,10 @@ class LineWindow:
                 out[0] = np.sqrt(float(cost[self.count >= self.min_views].sum()))  # the lines that have rows
                 return out
             r, J = self._reduced(Twc, U, w)
-            if H is not None:
-                self.U, self.w = U, w  # re-anchor
-                for i in range(len(self.free)):
-                    Ji = J[:, 6 * i : 6 * i + 6]
-                    H[i] = np.ascontiguousarray(Ji if self._ad_cb is None else Ji @ self._ad_cb)
+            self.U, self.w = U, w  # re-anchor
+            for i in range(len(self.free)):
+                Ji = J[:, 6 * i : 6 * i + 6]
+                H[i] = np.ascontiguousarray(Ji if self._ad_cb is None else Ji @ self._ad_cb)
             return r
 
         keys = [self.pose_keys[i] for i in self.free.tolist()]  # held poses are read from the values all the same
