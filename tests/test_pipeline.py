@@ -94,7 +94,7 @@ def test_networks_get_the_cores_the_tracking_thread_leaves_and_threads_are_resto
 def test_run_limits_numpy_blas_threads_and_the_ba_worker_follows():
     """SlamConfig.blas_threads caps numpy's BLAS threads while a run lasts (restored after); the async BA worker
     process started meanwhile gets the same cap."""
-    from pathlib import Path as _P
+    from pathlib import Path
 
     from threadpoolctl import threadpool_info
 
@@ -112,7 +112,7 @@ def test_run_limits_numpy_blas_threads_and_the_ba_worker_follows():
         w = BAWorker()
         w.start()
         try:
-            env = _P(f"/proc/{w._proc.pid}/environ").read_bytes().split(b"\0")
+            env = Path(f"/proc/{w._proc.pid}/environ").read_bytes().split(b"\0")
             assert b"OPENBLAS_NUM_THREADS=1" in env
         finally:
             w.close()
