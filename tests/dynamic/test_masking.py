@@ -256,3 +256,36 @@ def test_segment_samples_read_depth_as_keypoints_do():
         filt.geo._region_uv, filt.geo._region_z = np.array([[28.0, 20.0]]), np.array([2.0])  # flagged last frame
         kept.append(bool(filt.keep_segments(frame, seg, seg)[0]))
     assert kept == [False, True]
+
+
+def test_extra_detectors_boxes_are_unioned_with_the_first_ones():
+    """extra_weights (an ensemble): a keypoint is masked when any network boxes it; each network keeps its own
+    score threshold test and class list."""
+    from vslam.dynamic.detector import Detections
+
+    class One:
+        def __init__(self, box, score, name="person"):
+            self.box, self.score, self.name = box, score, name
+
+        def detect(self, image):
+            return Detections(np.array([self.box]), np.array([self.score]), np.array([0]), np.array([self.name], dtype=object))
+
+    uv = np.array([[5.0, 10.0], [25.0, 10.0], [45.0, 10.0]])
+    f = Features(uv, uv, np.zeros((3, 32), np.uint8), np.zeros(3), np.zeros(3))
+    cfg = DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.0, score_threshold=0.3)
+    frame = Frame(0, 0.0, np.zeros((48, 64), np.uint8))
+    first = One([0.0, 0.0, 10.0, 20.0], 0.9)
+    keep = DynamicFilter(cfg, CAM, detector=first, extra=[One([20.0, 0.0, 30.0, 20.0], 0.5)]).keep(frame, f)
+    assert keep.tolist() == [False, False, True]
+    weak = DynamicFilter(cfg, CAM, detector=first, extra=[One([20.0, 0.0, 30.0, 20.0], 0.2)]).keep(frame, f)
+    tv = DynamicFilter(cfg, CAM, detector=first, extra=[One([20.0, 0.0, 30.0, 20.0], 0.9, "tv")]).keep(frame, f)
+    assert weak.tolist() == tv.tolist() == [False, True, True]
+
+
+def test_extra_weights_load_one_network_each():
+    from vslam.dynamic.detector import default_weights
+
+    cfg = DynamicConfig(enabled=True, source="detector", device="cpu", extra_weights=(str(default_weights()),))
+    flt = DynamicFilter(cfg, CAM)
+    assert len(flt.extra) == 1 and flt.extra[0] is not flt.detector
+    assert len(DynamicFilter(dataclasses.replace(cfg, source="gt_mask"), CAM).extra) == 0

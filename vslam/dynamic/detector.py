@@ -103,8 +103,9 @@ def save_checkpoint(path: str | Path, model: YoloDetector, names: list[str], hal
 
 
 def default_weights() -> Path:
-    """The shipped detector (models/detector_esea.pt in the checkout; its card is models/README.md)."""
-    return Path(__file__).resolve().parents[2] / "models" / "detector_esea.pt"
+    """The shipped detector (models/detector_se_gpu.pt in the checkout; its card, and why this one, in
+    models/README.md)."""
+    return Path(__file__).resolve().parents[2] / "models" / "detector_se_gpu.pt"
 
 
 def load_model(path: str | Path) -> tuple[YoloDetector, dict]:

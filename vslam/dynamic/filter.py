@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -28,18 +29,19 @@ class DynamicFilter:
     keypoints; boxes of the next frame that overlap one judged static are not masked (DynaSLAM keeps a sitting
     person's points only by luck of its region growing; here the verdict is per object and renewed every frame)."""
 
-    def __init__(self, cfg: DynamicConfig, cam: PinholeCamera, detector: object | None = None):
+    def __init__(self, cfg: DynamicConfig, cam: PinholeCamera, detector: object | None = None,
+                 extra: list[object] | None = None):
         self.cfg, self.cam = cfg, cam
         self.geo = GeometricCheck(cfg.geometric, cam) if cfg.geometric.enabled else None
         self.detector = detector
         if cfg.source == "detector" and detector is None:
-            from vslam.device import pick_device
-            from vslam.dynamic.detector import default_weights, load_detector
+            from vslam.dynamic.detector import default_weights
 
-            self.detector = load_detector(cfg.weights or default_weights(), conf=cfg.score_threshold,
-                                          device=pick_device(cfg.device, "slam.dynamic.device"))
-            if cfg.img_size:  # wide frames (KITTI 1226x370): people stay large enough at a larger input
-                self.detector.img_size = cfg.img_size
+            self.detector = self._load(cfg.weights or default_weights())
+        # ``extra_weights``: detectors whose boxes are unioned with the first one's (``extra``: already loaded)
+        if extra is None:
+            extra = [self._load(path) for path in cfg.extra_weights] if cfg.source == "detector" else []
+        self.extra = list(extra)
         self._recent: deque[tuple[float, np.ndarray]] = deque()  # (timestamp, boxes) of this and recent frames
         self._boxes = np.zeros((0, 4))  # this frame's detector boxes
         self._static = np.zeros((0, 4))  # boxes of the last checked frame judged static
@@ -53,6 +55,15 @@ class DynamicFilter:
         self._region_grow = 0.0
         self._span: tuple[tuple[int, float], np.ndarray] | None = None  # (frame key, ``_depth_span``)
 
+    def _load(self, path: str | Path) -> object:
+        from vslam.device import pick_device
+        from vslam.dynamic.detector import load_detector
+
+        det = load_detector(path, conf=self.cfg.score_threshold, device=pick_device(self.cfg.device, "slam.dynamic.device"))
+        if self.cfg.img_size:  # wide frames (KITTI 1226x370): people stay large enough at a larger input
+            det.img_size = self.cfg.img_size
+        return det
+
     def detect(self, frame: Frame) -> np.ndarray | None:
         """(K,4) boxes of the configured classes at ``score_threshold`` (``source=detector``; None otherwise, and
         on the frames ``detect_every`` skips).
@@ -61,9 +72,12 @@ class DynamicFilter:
         ahead of ``keep`` (the SLAM front end's prefetch thread does: the network then costs tracking nothing)."""
         if self.cfg.source != "detector" or frame.index % self.cfg.detect_every:
             return None
-        det = self.detector.detect(frame.image)  # type: ignore[union-attr]
-        sel = (det.scores >= self.cfg.score_threshold) & np.isin(det.class_names, list(self.cfg.classes))
-        return det.boxes[sel].reshape(-1, 4)
+        boxes = []
+        for network in [self.detector, *self.extra]:
+            det = network.detect(frame.image)  # type: ignore[union-attr]
+            sel = (det.scores >= self.cfg.score_threshold) & np.isin(det.class_names, list(self.cfg.classes))
+            boxes.append(det.boxes[sel].reshape(-1, 4))
+        return np.concatenate(boxes)
 
     def dynamic_source(self, frame: Frame, feats: Features, boxes: np.ndarray | None = None) -> np.ndarray:
         """(N,) bool: keypoints on dynamic objects according to ``cfg.source`` (dilated by ``dilation_px``);
