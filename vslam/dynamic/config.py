@@ -91,7 +91,8 @@ class DynamicConfig:
     # map, and on TUM teddy composites with a close-up walker cut by the frame tracking then follows the walker.
     # 12 validation composites (walker seeds 1-6, 12-17), mean / median / worst ATE mm: SE alone 7.1 / 5.3 / 24.4,
     # SE + ESEA round 5 at score 0.2 6.3 / 5.2 / 15.5, at 0.25 6.1 / 5.0 / 13.4 (ESEA round 5 alone 15.0 / 5.1 /
-    # 106). Off by default: two networks break the CPU and GPU budgets of the mask step (issues 5, 10)
+    # 106); held out (bench row tum-teddy-people-detector-seeds-esea) 8.3 mm mean against 11.3 for either alone.
+    # Off by default: the mask step's network time doubles (one takes 4.5 ms on an H200 against issue 5's 5 ms)
     extra_weights: tuple[str, ...] = ()
     img_size: int = 0  # detector input: the image's longer side resized to this; 0 = the size it was trained at
     device: str = "auto"  # detector: auto = CUDA when torch sees a GPU (same boxes up to float rounding), cpu, cuda
