@@ -289,3 +289,5 @@ def test_extra_weights_load_one_network_each():
     flt = DynamicFilter(cfg, CAM)
     assert len(flt.extra) == 1 and flt.extra[0] is not flt.detector
     assert len(DynamicFilter(dataclasses.replace(cfg, source="gt_mask"), CAM).extra) == 0
+    with pytest.raises(ConfigError, match=r"nope\.pt: detector weights not found \(slam\.dynamic\.extra_weights\)"):
+        DynamicFilter(dataclasses.replace(cfg, extra_weights=("nope.pt",)), CAM)

@@ -13,6 +13,7 @@ from vslam.data.types import Frame, PinholeCamera
 from vslam.dynamic.config import DynamicConfig
 from vslam.dynamic.masking import box_iou, dilate, in_boxes, in_mask
 from vslam.dynamic.motion import GeometricCheck
+from vslam.errors import ConfigError
 from vslam.features.base import Features
 
 log = logging.getLogger(__name__)
@@ -37,10 +38,10 @@ class DynamicFilter:
         if cfg.source == "detector" and detector is None:
             from vslam.dynamic.detector import default_weights
 
-            self.detector = self._load(cfg.weights or default_weights())
+            self.detector = self._load(cfg.weights or default_weights(), "weights")
         # ``extra_weights``: detectors whose boxes are unioned with the first one's (``extra``: already loaded)
         if extra is None:
-            extra = [self._load(path) for path in cfg.extra_weights] if cfg.source == "detector" else []
+            extra = [self._load(p, "extra_weights") for p in cfg.extra_weights] if cfg.source == "detector" else []
         self.extra = list(extra)
         self._recent: deque[tuple[float, np.ndarray]] = deque()  # (timestamp, boxes) of this and recent frames
         self._boxes = np.zeros((0, 4))  # this frame's detector boxes
@@ -55,10 +56,12 @@ class DynamicFilter:
         self._region_grow = 0.0
         self._span: tuple[tuple[int, float], np.ndarray] | None = None  # (frame key, ``_depth_span``)
 
-    def _load(self, path: str | Path) -> object:
+    def _load(self, path: str | Path, field_name: str) -> object:
         from vslam.device import pick_device
         from vslam.dynamic.detector import load_detector
 
+        if not Path(path).is_file():
+            raise ConfigError(f"{path}: detector weights not found (slam.dynamic.{field_name})")
         det = load_detector(path, conf=self.cfg.score_threshold, device=pick_device(self.cfg.device, "slam.dynamic.device"))
         if self.cfg.img_size:  # wide frames (KITTI 1226x370): people stay large enough at a larger input
             det.img_size = self.cfg.img_size
