@@ -124,6 +124,7 @@ def network_speed(device: str = "auto", frames: int = 20, repeats: int = 3, thre
 
     from vslam.data.tum import TumRgbdSequence
     from vslam.device import pick_device
+    from vslam.dynamic.config import DynamicConfig
     from vslam.dynamic.detector import default_weights, load_detector
     from vslam.dynamic.masking import in_boxes
     from vslam.features.base import FeatureConfig
@@ -140,7 +141,7 @@ def network_speed(device: str = "auto", frames: int = 20, repeats: int = 3, thre
     cam = seq.calibration.cam0
     images = [f.image for f in itertools.islice(seq, frames)]
     conv = ConvPointExtractor(FeatureConfig(extractor="convpoint", n_features=n_features, device=dev.type))
-    det = load_detector(default_weights(), conf=0.2, device=dev)
+    det = load_detector(default_weights(), conf=DynamicConfig().score_threshold, device=dev)  # as SLAM runs it
     lsd = LineExtractor()
     vlad = VladNetDescriptor.from_file(default_vladnet_path(), device=dev.type)
 
