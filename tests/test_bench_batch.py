@@ -63,3 +63,15 @@ def test_ab_row_runs_both_sides_on_every_seed(tmp_path):
     assert r["ate_a"] != r["ate_b"]  # the treatment reached the B runs
     line = next(ln for ln in text.splitlines() if ln.startswith("| tiny-ab"))
     assert "slam.features.n_features=400" in line and f"**{r['mean_ratio']:.2f}x**" in line and "some target" in line
+
+
+def test_ab_table_names_the_first_failed_run():
+    """A failed run's error reaches the table (one line, no cell break), not only BENCHMARKS.json."""
+    from vslam.batch import ab_result, ab_table
+    from vslam.bench import BenchRow
+
+    row = BenchRow(name="x-ab", kind="ab", treatment=("k=1",), target="t")
+    res = ab_result({"seed": [0, 1]}, [{"ate_rmse": 0.01}, {"ate_rmse": 0.02},
+                                       {"error": "ConfigError: a|b.yaml:\n not found"}, {"error": "other"}])
+    line = next(ln for ln in ab_table([(row, res)]) if ln.startswith("| x-ab"))
+    assert "2 (2 runs failed: ConfigError: a/b.yaml: not found)" in line and "**2.00x**" in line
