@@ -248,9 +248,10 @@ def ab_table(rows: list[tuple[Any, dict[str, Any]]]) -> list[str]:
         mean = "–" if r.get("mean_ratio") is None else (
             f"**{r['mean_ratio']:.2f}x** ({statistics.mean(a for a, _ in both):.4f} → {statistics.mean(b for _, b in both):.4f} m)")
         kf = "–" if r.get("kf_ms_ratio") is None else f"{r['kf_ms_ratio']:.2f}x"
-        # the first error in the table (a cell holds one line); all of them are in BENCHMARKS.json
-        first = " ".join(str(r["errors"][0]).split()).replace("|", "/") if r.get("errors") else ""
-        err = f" ({len(r['errors'])} runs failed: {first})" if r.get("errors") else ""
+        err = ""
+        if r.get("errors"):  # the first error in the table (a cell holds one line); all of them in BENCHMARKS.json
+            first = " ".join(str(r["errors"][0]).split()).replace("|", "/")
+            err = f" ({len(r['errors'])} runs failed: {first})"
         lines.append(f"| {row.name} | {', '.join(row.treatment)} | {len(r['points'])}{err} | {vals(r['ate_a'], '.4f')} | "
                      f"{vals(r['ate_b'], '.4f')} | {vals(r['ratios'], '.2f')} | {mean} | {kf} | {row.target} |")
     return lines

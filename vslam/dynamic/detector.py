@@ -108,15 +108,17 @@ def default_weights() -> Path:
     return Path(__file__).resolve().parents[2] / "models" / "detector_se_gpu.pt"
 
 
-def load_model(path: str | Path) -> tuple[YoloDetector, dict]:
+def load_model(path: str | Path, field: str = "slam.dynamic.weights") -> tuple[YoloDetector, dict]:
+    """``field``: the config field that named ``path``, for the error when it is missing."""
     if not Path(path).is_file():
-        raise ConfigError(f"{path}: detector weights not found (slam.dynamic.weights)")
+        raise ConfigError(f"{path}: detector weights not found ({field})")
     ckpt = torch.load(Path(path), map_location="cpu", weights_only=True)  # weights only: a config path never runs code
     model = YoloDetector(DetectorConfig(**ckpt["config"]))
     model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in ckpt["model"].items()})
     return model, ckpt
 
 
-def load_detector(path: str | Path, img_size: int = 640, conf: float = 0.25, device: torch.device | str = "cpu") -> Detector:
-    model, ckpt = load_model(path)
+def load_detector(path: str | Path, img_size: int = 640, conf: float = 0.25, device: torch.device | str = "cpu",
+                  field: str = "slam.dynamic.weights") -> Detector:
+    model, ckpt = load_model(path, field)
     return Detector(model, ckpt["names"], img_size=int(ckpt.get("img_size", img_size)), conf=conf, device=device)

@@ -13,7 +13,6 @@ from vslam.data.types import Frame, PinholeCamera
 from vslam.dynamic.config import DynamicConfig
 from vslam.dynamic.masking import box_iou, dilate, in_boxes, in_mask
 from vslam.dynamic.motion import GeometricCheck
-from vslam.errors import ConfigError
 from vslam.features.base import Features
 
 log = logging.getLogger(__name__)
@@ -60,9 +59,8 @@ class DynamicFilter:
         from vslam.device import pick_device
         from vslam.dynamic.detector import load_detector
 
-        if not Path(path).is_file():
-            raise ConfigError(f"{path}: detector weights not found (slam.dynamic.{field_name})")
-        det = load_detector(path, conf=self.cfg.score_threshold, device=pick_device(self.cfg.device, "slam.dynamic.device"))
+        det = load_detector(path, conf=self.cfg.score_threshold, field=f"slam.dynamic.{field_name}",
+                            device=pick_device(self.cfg.device, "slam.dynamic.device"))
         if self.cfg.img_size:  # wide frames (KITTI 1226x370): people stay large enough at a larger input
             det.img_size = self.cfg.img_size
         return det
