@@ -94,10 +94,9 @@ def test_networks_get_the_cores_the_tracking_thread_leaves_and_threads_are_resto
 def test_run_limits_numpy_blas_threads_and_the_ba_worker_follows():
     """SlamConfig.blas_threads caps numpy's BLAS threads while a run lasts (restored after); the async BA worker
     process started meanwhile gets the same cap."""
-    from pathlib import Path
-
     from threadpoolctl import threadpool_info
 
+    from tests._proc import environ_after_exec
     from vslam.backend.worker import BAWorker
     from vslam.pipeline import blas_threads
     from vslam.tracking.slam import SlamConfig
@@ -112,7 +111,7 @@ def test_run_limits_numpy_blas_threads_and_the_ba_worker_follows():
         w = BAWorker()
         w.start()
         try:
-            env = Path(f"/proc/{w._proc.pid}/environ").read_bytes().split(b"\0")
+            env = environ_after_exec(w._proc.pid, b"vslam.backend.worker")
             assert b"OPENBLAS_NUM_THREADS=1" in env
         finally:
             w.close()

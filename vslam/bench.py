@@ -24,13 +24,13 @@ import math
 import multiprocessing as mp
 import os
 import platform
-import resource
 import statistics
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from vslam.childproc import peak_rss_mb
 from vslam.config import deep_merge, from_dict, load_yaml, parse_overrides
 from vslam.errors import ConfigError
 
@@ -73,10 +73,6 @@ class BenchSuite:
     rows: tuple[BenchRow, ...] = field(default_factory=tuple)
 
 
-def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
-
-
 def _job_run(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
     from vslam.pipeline import Pipeline, PipelineConfig
 
@@ -96,7 +92,7 @@ def _job_run(config: str | None, overrides: dict[str, Any], out_dir: str) -> dic
             row["rpe_r"] = first.rotation_deg.rmse
             row["rpe_delta"] = first.label
     row.update(stage_times(Path(out_dir) / "stats.csv"))
-    row["peak_rss_mb"] = _peak_rss_mb()
+    row["peak_rss_mb"] = peak_rss_mb()
     return row
 
 
@@ -154,7 +150,7 @@ def _job_render(config: str | None, overrides: dict[str, Any], out_dir: str) -> 
     for _ in seq:
         n += 1
     dt = time.perf_counter() - t0
-    return {"frames": n, "fps": n / dt, "ms_per_frame": 1e3 * dt / n, "peak_rss_mb": _peak_rss_mb()}
+    return {"frames": n, "fps": n / dt, "ms_per_frame": 1e3 * dt / n, "peak_rss_mb": peak_rss_mb()}
 
 
 def _job_fusion(experiment: str, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
@@ -165,7 +161,7 @@ def _job_fusion(experiment: str, overrides: dict[str, Any], out_dir: str) -> dic
     t0 = time.perf_counter()
     m = EXPERIMENTS[experiment](Path(out_dir), seed=int(overrides.get("seed", 0)), quick=bool(overrides.get("quick", False)))
     return {"headline": m.get("headline", ""), "seed_claim": m.get("seed_claim", ""), "seconds": time.perf_counter() - t0,
-            "report": str(Path(out_dir) / "report.md"), "peak_rss_mb": _peak_rss_mb()}
+            "report": str(Path(out_dir) / "report.md"), "peak_rss_mb": peak_rss_mb()}
 
 
 def _job_imu_preint(overrides: dict[str, Any]) -> dict[str, Any]:
@@ -179,7 +175,7 @@ def _job_imu_preint(overrides: dict[str, Any]) -> dict[str, Any]:
                              tuple(float(x) for x in overrides.get("lengths", (0.5, 1.0, 2.0))),
                              float(overrides.get("static_window_s", 4.0)), float(overrides.get("noise_scale", 1.0)),
                              tuple(float(x) for x in overrides.get("align_spans", (3.0, 5.0, 10.0))))
-    return {**out, "seconds": time.perf_counter() - t0, "peak_rss_mb": _peak_rss_mb()}
+    return {**out, "seconds": time.perf_counter() - t0, "peak_rss_mb": peak_rss_mb()}
 
 
 def _job_place(overrides: dict[str, Any]) -> dict[str, Any]:
@@ -199,7 +195,7 @@ def _job_place(overrides: dict[str, Any]) -> dict[str, Any]:
     sets = {held[k].label: r for k, r in evaluate_held_out(desc, held).items()}
     dims = {n: next(iter(sets.values()))[n]["dim"] for n in names}
     return {"sets": sets, "costs": {n: database_costs(d) for n, d in dims.items()}, "seconds": time.perf_counter() - t0,
-            "peak_rss_mb": _peak_rss_mb()}
+            "peak_rss_mb": peak_rss_mb()}
 
 
 def _job_features(overrides: dict[str, Any]) -> dict[str, Any]:
@@ -216,7 +212,7 @@ def _job_features(overrides: dict[str, Any]) -> dict[str, Any]:
     cfg = FeatureBenchConfig(n_keypoints=int(overrides.get("keypoints", 1000)), pairs_per_image=int(overrides.get("pairs", 2)),
                              max_images_per_source=int(overrides.get("images", 12)), seed=int(overrides.get("seed", 0)))
     res = run_feature_bench(str(overrides.get("weights") or default_weights()), data_root(), cfg)
-    return {**res, "seconds": time.perf_counter() - t0, "peak_rss_mb": _peak_rss_mb()}
+    return {**res, "seconds": time.perf_counter() - t0, "peak_rss_mb": peak_rss_mb()}
 
 
 def _job_detector(overrides: dict[str, Any]) -> dict[str, Any]:
@@ -228,7 +224,7 @@ def _job_detector(overrides: dict[str, Any]) -> dict[str, Any]:
     if not weights:
         raise ConfigError("bench kind detector needs set: weights=[file, ...]")
     res = evaluate_detectors(weights, threads=int(overrides.get("threads", 2)))
-    return {**res, "seconds": time.perf_counter() - t0, "peak_rss_mb": _peak_rss_mb()}
+    return {**res, "seconds": time.perf_counter() - t0, "peak_rss_mb": peak_rss_mb()}
 
 
 def _job_speed(overrides: dict[str, Any]) -> dict[str, Any]:

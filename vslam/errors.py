@@ -19,6 +19,9 @@ class DatasetError(VslamError):
         where = f"{self.path}:{line}" if line is not None else f"{self.path}"
         super().__init__(f"{where}: {reason}")
 
+    def __reduce__(self):  # pickled by its fields (the front-end process sends it to the tracking process)
+        return type(self), (self.path, self.reason, self.line)
+
 
 class ConfigError(VslamError):
     """A config file or override is invalid (unknown key, wrong type)."""

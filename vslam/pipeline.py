@@ -13,6 +13,7 @@ import contextlib
 import csv
 import logging
 import os
+import pickle
 import queue
 import sys
 import threading
@@ -203,6 +204,20 @@ def torch_threads(cfg: SlamConfig | None) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
+def _frontend_process(seq: Sequence, n: int, cfg: PipelineConfig):
+    """A ``FrontEndProcess`` for the run (``SlamConfig.frontend_process``), or None -- the prefetch thread
+    then -- when the sequence cannot be sent to a child process."""
+    from vslam.tracking.frontend_process import FrontEndProcess
+
+    try:
+        return FrontEndProcess(seq, n, seq.calibration, cfg.dataset.sensor, cfg.slam,
+                               torch_threads=cfg.slam.torch_threads or max(1, _cpus() - 1),
+                               blas_threads=cfg.slam.blas_threads)
+    except (TypeError, AttributeError, pickle.PicklingError) as e:
+        log.info("front end on a thread: the sequence cannot be sent to a child process (%s)", e)
+        return None
+
+
 class Pipeline:
     """``Pipeline(config).run(sequence)``: the Python API behind ``vslam run``."""
 
@@ -223,12 +238,20 @@ class Pipeline:
         paths: dict[str, Path] = {"config": out / "config.yaml"}
         writers = {f: TrajectoryWriter(out / f"trajectory.{f}.txt", f) for f in cfg.output.formats}
         paths.update({f"trajectory_{f}": w.path for f, w in writers.items()})
-        odo: FrameToFrameOdometry | SlamTracker
-        if cfg.tracker == "slam":
-            odo = SlamTracker(seq.calibration, cfg.dataset.sensor, cfg.slam)
-        else:
-            odo = FrameToFrameOdometry(seq.calibration, cfg.dataset.sensor, cfg.odometry)
         n_total = len(seq) if cfg.dataset.max_frames <= 0 else min(len(seq), cfg.dataset.max_frames)
+        ahead = cfg.tracker == "slam" and cfg.slam.frontend_thread
+        # started first: the child's imports overlap building the tracker here
+        child = _frontend_process(seq, n_total, cfg) if ahead and cfg.slam.frontend_process else None
+        odo: FrameToFrameOdometry | SlamTracker
+        try:
+            if cfg.tracker == "slam":
+                odo = SlamTracker(seq.calibration, cfg.dataset.sensor, cfg.slam)
+            else:
+                odo = FrameToFrameOdometry(seq.calibration, cfg.dataset.sensor, cfg.odometry)
+        except BaseException:
+            if child is not None:
+                child.close()
+            raise
         stamps: list[float] = []
         indices: list[int] = []
         backfill: dict[int, np.ndarray] = {}  # frame index -> pose measured late (FrameEstimate.backfill)
@@ -243,8 +266,9 @@ class Pipeline:
             with torch_threads(slam_cfg), blas_threads(slam_cfg), open(stats_path, "w", newline="") as fstats:
                 sw = csv.writer(fstats)
                 sw.writerow(STAT_COLUMNS)
-                ahead = isinstance(odo, SlamTracker) and cfg.slam.frontend_thread
-                frames, k = prefetch(seq, n_total, prepare=odo.frontend if ahead else None), -1
+                frames = iter(child) if child is not None else prefetch(seq, n_total,
+                                                                         prepare=odo.frontend if ahead else None)
+                k = -1
                 while True:
                     t_wait = time.perf_counter()
                     item = next(frames, None)  # made on a background thread: this is the time tracking waited
@@ -290,6 +314,8 @@ class Pipeline:
         finally:
             for w in writers.values():
                 w.close()
+            if child is not None:
+                child.close()
         seconds = time.perf_counter() - t_start
         paths.update(odo.finish(out))  # keyframes and map (SLAM); nothing for the baseline
         # a loop closure or a monocular inertial rescale moved the keyframes: every frame follows its own

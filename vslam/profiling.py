@@ -4,10 +4,11 @@ Read back from the run's ``stats.csv``, so a profile costs the run nothing extra
 profiled again (``python -m vslam.profiling runs/x/stats.csv``). Per stage: the mean ms per frame (a stage that
 runs on keyframes only, such as local BA, counts 0 on the other frames, so the means add up to the frame
 time), the median over the frames it ran on, how many frames that was, and its share of the mean total.
-"decode" is the time tracking waited for the next frame (frames are read on a background thread). With
-``slam.frontend_thread`` (the default) that thread also computes the image-only stages (features, lines, the
-dynamic-object detector and, without dynamic filtering, depth) ahead of tracking: their rows are then their cost
-there, on the second core, and not part of "total" (the tracking call); "decode" includes any wait for them.
+"decode" is the time tracking waited for the next frame (frames are read ahead, beside tracking). With
+``slam.frontend_thread`` (the default) the image-only stages (features, lines, the dynamic-object detector and,
+without dynamic filtering, depth) are computed there too -- in a child process with ``slam.frontend_process``
+(the default), else on a thread: their rows are then their cost there, on the second core, and not part of
+"total" (the tracking call); "decode" includes any wait for them (and, for the first frame, the child's start).
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ from __future__ import annotations
 import csv
 import itertools
 import json
-import resource
 import statistics
 import sys
 import time
@@ -24,13 +24,16 @@ from typing import Any
 
 import numpy as np
 
+from vslam.childproc import peak_rss_mb
+
 #: pipeline order; sub-stages of mapping are indented in the table
 ORDER = ("decode", "features", "detector", "dynamic", "lines", "depth", "pose", "mapping", "map_create",
          "map_fuse_cull", "map_ba", "map_wait", "map_loop", "total")
 
 
 def profile(stats_csv: str | Path) -> dict[str, Any]:
-    """-> {"frames": N, "stages": {stage: {"mean_ms", "median_ms", "frames", "share"}}, "peak_rss_mb": this process}."""
+    """-> {"frames": N, "stages": {stage: {"mean_ms", "median_ms", "frames", "share"}}, "peak_rss_mb": this process and its largest
+    child}."""
     with open(stats_csv, newline="") as f:
         rows = list(csv.DictReader(f))
     cols = [c[3:] for c in (rows[0] if rows else {}) if c.startswith("ms_")]
@@ -47,7 +50,7 @@ def profile(stats_csv: str | Path) -> dict[str, Any]:
     # features ("decode") is outside "total" but not outside the run
     wall = total + stages.get("decode", {}).get("mean_ms", 0.0)
     return {"frames": len(rows), "stages": stages, "wall_ms_per_frame": wall,
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+            "peak_rss_mb": peak_rss_mb()}
 
 
 def format_profile(p: dict[str, Any]) -> str:

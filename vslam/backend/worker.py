@@ -6,40 +6,16 @@ its own thread and tracks against whatever the map is at that moment; here the c
 frame schedule when a result is applied (``MappingConfig.ba_lag_frames``), so runs stay deterministic: the
 worker computes exactly what ``local_bundle_adjustment`` computes in-process (same code, same inputs).
 
-The worker is ``python -m vslam.backend.worker`` talking pickles over its stdin/stdout, not a
-``multiprocessing`` child: a spawned child re-imports the caller's ``__main__``, which breaks any user script
-without an ``if __name__ == "__main__"`` guard, and a forked one inherits the parent's threads (OpenCV, torch,
-the frame prefetcher).
+The worker is ``python -m vslam.backend.worker`` (``vslam.childproc``: pickles over its stdin / stdout).
 """
 
 from __future__ import annotations
 
-import os
-import pickle
-import struct
 import subprocess
 import sys
-from pathlib import Path
-from typing import BinaryIO
 
+from vslam import childproc
 from vslam.backend.ba import BackendConfig, BAProblem, BAResult, StereoCamera, local_bundle_adjustment
-
-_HEADER = struct.Struct("<Q")
-
-
-def _send(f: BinaryIO, obj: object) -> None:
-    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
-    f.write(_HEADER.pack(len(data)))
-    f.write(data)
-    f.flush()
-
-
-def _receive(f: BinaryIO) -> object:
-    head = f.read(_HEADER.size)
-    if len(head) < _HEADER.size:
-        raise EOFError
-    (n,) = _HEADER.unpack(head)
-    return pickle.loads(f.read(n))
 
 
 class BAWorker:
@@ -52,22 +28,12 @@ class BAWorker:
     def start(self) -> None:
         """Start the process now (it imports GTSAM for ~0.3 s while the caller reads its first frames)."""
         if self._proc is None or self._proc.poll() is not None:
-            env = dict(os.environ)
-            root = str(Path(__file__).resolve().parents[2])  # the folder holding the vslam package
-            env["PYTHONPATH"] = os.pathsep.join([root] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
-            from threadpoolctl import threadpool_info
-
-            # numpy's BLAS threads as the parent has them now (``SlamConfig.blas_threads`` while a run lasts)
-            blas = [i["num_threads"] for i in threadpool_info() if i.get("user_api") == "blas"]
-            if blas:
-                env["OPENBLAS_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(min(blas))
-            self._proc = subprocess.Popen([sys.executable, "-m", "vslam.backend.worker"], stdin=subprocess.PIPE,
-                                          stdout=subprocess.PIPE, env=env)
+            self._proc = childproc.spawn("vslam.backend.worker")
             self._waiting = 0
 
     def submit(self, problem: BAProblem, camera: StereoCamera, cfg: BackendConfig) -> None:
         self.start()
-        _send(self._proc.stdin, (problem, camera, cfg))  # type: ignore[union-attr,arg-type]
+        childproc.send(self._proc.stdin, (problem, camera, cfg))  # type: ignore[union-attr,arg-type]
         self._waiting += 1
 
     def result(self) -> BAResult:
@@ -75,7 +41,7 @@ class BAWorker:
         if self._proc is None or self._waiting == 0:
             raise RuntimeError("BAWorker.result: nothing was submitted")
         try:
-            status, payload = _receive(self._proc.stdout)  # type: ignore[arg-type,misc]
+            status, payload = childproc.receive(self._proc.stdout)  # type: ignore[arg-type,misc]
         except EOFError:
             raise RuntimeError(f"the local BA worker process died (exit code {self._proc.wait()})") from None
         self._waiting -= 1
@@ -84,15 +50,8 @@ class BAWorker:
         return payload  # type: ignore[return-value]
 
     def close(self) -> None:
-        if self._proc is not None:
-            try:
-                self._proc.stdin.close()  # type: ignore[union-attr]  # EOF: the worker's loop ends
-                self._proc.wait(timeout=10)
-            except (OSError, subprocess.TimeoutExpired):
-                self._proc.kill()
-                self._proc.wait()
-            self._proc.stdout.close()  # type: ignore[union-attr]
-            self._proc = None
+        childproc.stop(self._proc)
+        self._proc = None
 
     def __del__(self) -> None:
         try:
@@ -103,19 +62,18 @@ class BAWorker:
 
 def _serve() -> None:
     """The worker's loop: (problem, camera, cfg) in on stdin -> ("ok", BAResult) | ("error", text) out."""
-    out = os.fdopen(os.dup(1), "wb")
-    os.dup2(2, 1)  # anything the solver prints goes to stderr, not into the result stream
+    out = childproc.result_stream()  # anything the solver prints goes to stderr, not into the result stream
     inp = sys.stdin.buffer
     while True:
         try:
-            problem, camera, cfg = _receive(inp)  # type: ignore[misc]
+            problem, camera, cfg = childproc.receive(inp)  # type: ignore[misc]
         except EOFError:
             return
         try:
             reply: tuple[str, object] = ("ok", local_bundle_adjustment(problem, camera, cfg))
         except Exception as e:  # the parent raises it where it waits
             reply = ("error", f"{type(e).__name__}: {e}")
-        _send(out, reply)
+        childproc.send(out, reply)
 
 
 if __name__ == "__main__":

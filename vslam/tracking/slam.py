@@ -62,6 +62,12 @@ class SlamConfig:
     # computes them for the next frames on its prefetch thread while this one is tracked (OpenCV / torch release
     # the GIL, so it uses a second core). Same numbers either way; off = everything on the tracking thread.
     frontend_thread: bool = True
+    # With frontend_thread: decode the frames and run that front end in a child process instead of a thread
+    # (``vslam.tracking.frontend_process``: GTSAM's BA holds the GIL, and a thread cannot work ahead through it).
+    # The same numbers bit for bit. 2026-12-04, 2 cores, one sweep run each: TUM teddy ORB-only 32.5 -> 30.3
+    # ms/frame, the learned pipeline 97.8 -> 70.9 (bench rows tum-teddy-rgbd / tum-teddy-people-rgbd-learned and
+    # their -frontend-thread rows). A sequence that cannot be pickled to the child runs on the thread.
+    frontend_process: bool = True
     # LSD segments on a thread of their own, beside the networks: on a GPU ConvPoint and the detector take ~5 ms
     # each and LSD (CPU) ~19 ms (bench row network-speed-gpu), so in a row the front end costs their sum, side by
     # side the longest. None = when the keypoint network runs on CUDA (the 2-core CPU target has no core to

@@ -1,0 +1,111 @@
+"""The front end in a child process (``slam.frontend_process``): same numbers as the thread, errors keep their
+message, the child and its frame files go away, and a sequence that cannot be sent falls back to the thread."""
+
+from __future__ import annotations
+
+import csv
+import logging
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests._proc import environ_after_exec
+from vslam.data.synthetic import SyntheticConfig, SyntheticSequence
+from vslam.data.types import Frame
+from vslam.errors import DatasetError
+from vslam.pipeline import Pipeline, PipelineConfig
+from vslam.tracking.frontend_process import FrontEndProcess, read_frame_file, write_frame_file
+from vslam.tracking.slam import SlamConfig
+
+SMALL = dict(width=320, height=240, fx=262.5, fy=262.5, n_movers=0)
+
+
+def _pc(tmp_path: Path, name: str, slam: dict, n: int = 15) -> PipelineConfig:
+    return PipelineConfig.load(None, {"dataset": {"kind": "synthetic", "sensor": "rgbd", "synthetic": {"n_frames": n, **SMALL}},
+                                      "slam": slam, "output": {"dir": str(tmp_path / name), "report": False}})
+
+
+def _stats(out: Path) -> list[dict[str, str]]:
+    with open(out / "stats.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_frame_file_round_trip_maps_writable_arrays(tmp_path):
+    path = tmp_path / "f.pkl"
+    img = np.arange(7 * 9 * 3, dtype=np.uint8).reshape(7, 9, 3)
+    obj = (Frame(3, 1.5, img, depth=np.linspace(0, 1, 63, dtype=np.float32).reshape(7, 9)),
+           {"strided": np.arange(20.0).reshape(4, 5)[:, ::2], "empty": np.zeros((0, 2)), "text": "x"})
+    write_frame_file(path, obj)
+    frame, extra = read_frame_file(path)
+    np.testing.assert_array_equal(frame.image, img)
+    np.testing.assert_array_equal(frame.depth, obj[0].depth)
+    np.testing.assert_array_equal(extra["strided"], obj[1]["strided"])
+    assert extra["empty"].shape == (0, 2) and extra["text"] == "x" and frame.index == 3 and frame.timestamp == 1.5
+    assert frame.image.flags.writeable
+    frame.image[0, 0, 0] = 200  # a private copy of the page: the file keeps its bytes
+    np.testing.assert_array_equal(read_frame_file(path)[0].image, img)
+
+
+def test_process_thread_and_inline_front_ends_give_the_same_run(tmp_path):
+    runs = {}
+    modes = {"process": {}, "thread": {"frontend_process": False}, "inline": {"frontend_thread": False}}
+    for name, slam in modes.items():
+        runs[name] = Pipeline(_pc(tmp_path, name, slam)).run()
+    for name in ("thread", "inline"):
+        np.testing.assert_array_equal(runs[name].trajectory.poses, runs["process"].trajectory.poses)
+        np.testing.assert_array_equal(runs[name].trajectory.timestamps, runs["process"].trajectory.timestamps)
+    rows = _stats(tmp_path / "process")
+    assert len(rows) == 15 and all(float(r["ms_features"]) > 0 for r in rows)  # timed in the child, reported here
+    assert [r["n_features"] for r in rows] == [r["n_features"] for r in _stats(tmp_path / "thread")]
+
+
+def test_child_stops_and_its_frame_files_go_away(tmp_path):
+    seq = SyntheticSequence(SyntheticConfig(n_frames=12, **SMALL), sensor="rgbd")
+    child = FrontEndProcess(seq, 12, seq.calibration, "rgbd", SlamConfig(), ahead=3)
+    folder, proc = child._dir, child._proc
+    it = iter(child)
+    frames = [next(it) for _ in range(2)]
+    assert [f.index for f, _ in frames] == [0, 1] and len(frames[0][1].feats) > 0
+    child.close()  # early stop: the child is killed, not waited for
+    assert proc.poll() is not None and not folder.exists()
+    full = FrontEndProcess(seq, 5, seq.calibration, "rgbd", SlamConfig(), blas_threads=1, ahead=2)
+    assert b"OPENBLAS_NUM_THREADS=1" in environ_after_exec(full._proc.pid, b"vslam.tracking.frontend_process")
+    # ends by itself after n frames
+    assert [f.index for f, _ in full] == [0, 1, 2, 3, 4]
+    assert full._proc is None and not full._dir.exists()
+
+
+class _FailingSequence(SyntheticSequence):
+    """Decodes three frames, then meets a bad file (importable by the child: tests is a package)."""
+
+    def __iter__(self):
+        for k, frame in enumerate(super().__iter__()):
+            if k == 3:
+                raise DatasetError("rgb/0003.png", "not a PNG file", line=4)
+            yield frame
+
+
+def test_an_error_in_the_child_is_raised_with_its_type_and_message_after_the_frames_before_it(tmp_path):
+    seq = _FailingSequence(SyntheticConfig(n_frames=8, **SMALL), sensor="rgbd")
+    with pytest.raises(DatasetError, match=r"rgb/0003.png:4: not a PNG file") as err:
+        Pipeline(_pc(tmp_path, "fail", {})).run(seq)
+    assert err.value.line == 4
+    lines = (tmp_path / "fail" / "trajectory.tum.txt").read_text().splitlines()
+    assert len([x for x in lines if not x.startswith("#")]) == 3  # written as they were tracked
+
+
+class _UnpicklableSequence(SyntheticSequence):
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self.lock = threading.Lock()  # e.g. a reader holding a handle
+
+
+def test_a_sequence_that_cannot_be_sent_runs_on_the_thread(tmp_path, caplog):
+    seq = _UnpicklableSequence(SyntheticConfig(n_frames=6, **SMALL), sensor="rgbd")
+    ref = Pipeline(_pc(tmp_path, "ref", {"frontend_process": False}, n=6)).run()
+    with caplog.at_level(logging.INFO, logger="vslam.pipeline"):
+        res = Pipeline(_pc(tmp_path, "fallback", {}, n=6)).run(seq)
+    assert "front end on a thread" in caplog.text
+    np.testing.assert_array_equal(res.trajectory.poses, ref.trajectory.poses)

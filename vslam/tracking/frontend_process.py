@@ -1,0 +1,192 @@
+"""The image-only front end -- decoding the frames and ``SlamTracker.frontend`` (keypoints, segments, keypoint
+depth, detector boxes) -- in a child process, up to ``ahead`` frames ahead of tracking.
+
+Why not only the prefetch thread (``SlamConfig.frontend_thread``): on TUM teddy (2 cores) the tracking thread
+spends ~11 ms on a frame and ~80 ms on a keyframe (local BA), the front end ~20 ms on every frame (PNG decode
+10 + ORB 8). Balanced over a keyframe's ~7 frames -- if the front end could work ahead through each BA. A
+thread cannot: GTSAM's optimiser holds the GIL (~30 ms per LM round), and its queue was 3 frames. Each frame
+after a BA then waited ~10 ms for the front end (stats.csv ms_decode, 2026-12-04). A process has its own GIL.
+
+How the frames travel: a TUM frame pickles to ~2.2 MB (colour + float depth), which through a pipe needs the
+reader's GIL dozens of times per frame -- a reader thread beside GTSAM starved, and the child blocked on the
+full pipe. So each frame is a file in a private folder on a RAM file system (``/dev/shm`` where there is one),
+the pipe carries only "frame k is ready", and the tracking thread reads the file when it wants the frame. The
+child stays at most ``ahead`` frames ahead: after that it waits for one acknowledgement byte per frame read.
+
+The child builds its own ``SlamTracker`` from the same calibration, sensor and config (loop closing, IMU,
+saved maps and the BA worker off: the front end uses none of them) and runs the same ``frontend`` code on the
+same frames, so the numbers are those of the thread, bit for bit; it reads the sequence itself (the sequence
+is pickled to it).
+"""
+
+from __future__ import annotations
+
+import mmap
+import os
+import pickle
+import shutil
+import struct
+import subprocess
+import sys
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+from typing import Iterator
+
+from vslam import childproc
+from vslam.data.types import Calibration, Frame, Sequence, SensorKind
+from vslam.errors import VslamError
+
+
+class FrontEndProcess:
+    """``for frame, front in FrontEndProcess(seq, n, ...)``: the first ``n`` frames of ``seq`` with their
+    ``SlamTracker.frontend``, made by a child process. An error in the child (a frame that does not decode, a
+    missing checkpoint) is raised here, with its message. Raises TypeError / pickle.PicklingError / AttributeError
+    at once when the sequence cannot be sent to a child (a user's own Sequence class holding an open handle): use
+    the thread then. ``close()`` (or the end of the iteration) stops the child and removes its folder."""
+
+    def __init__(self, seq: Sequence, n: int, calibration: Calibration, sensor: SensorKind, cfg,
+                 torch_threads: int = 0, blas_threads: int | None = None, ahead: int = 8):
+        self._proc: subprocess.Popen | None = None
+        self._dir = Path(tempfile.mkdtemp(prefix="vslam-frontend-", dir=_ram_dir()))
+        try:  # the spec goes through a file: the pipe would hold this thread until the child has imported
+            with open(self._dir / "spec.pkl", "wb") as f:
+                pickle.dump((seq, n, calibration, sensor, cfg, torch_threads, ahead), f, protocol=pickle.HIGHEST_PROTOCOL)
+        except BaseException:
+            shutil.rmtree(self._dir, ignore_errors=True)
+            raise
+        self._proc = childproc.spawn("vslam.tracking.frontend_process", blas_threads)
+        childproc.send(self._proc.stdin, str(self._dir))  # type: ignore[arg-type]
+
+    def __iter__(self) -> Iterator[tuple[Frame, object]]:
+        try:
+            while self._proc is not None:
+                try:
+                    msg = childproc.receive(self._proc.stdout)  # type: ignore[arg-type]
+                except EOFError:
+                    raise RuntimeError(f"the front-end process died (exit code {self._proc.wait()})") from None
+                if msg[0] == "done":  # type: ignore[index]
+                    return
+                if msg[0] == "error":  # type: ignore[index]
+                    raise msg[1]  # type: ignore[index,misc]
+                path = self._dir / f"{msg[1]}.pkl"  # type: ignore[index]
+                item = read_frame_file(path)
+                path.unlink()  # its memory stays mapped while the frame's arrays live
+                try:
+                    self._proc.stdin.write(b"\x01")  # type: ignore[union-attr]  # one more frame may be made
+                    self._proc.stdin.flush()  # type: ignore[union-attr]
+                except BrokenPipeError:  # the child has finished (or failed: its message follows)
+                    pass
+                yield item  # type: ignore[misc]
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        """Stop the child now (it may be waiting to make frames nobody will read) and remove its folder."""
+        if self._proc is not None:
+            self._proc.kill()
+            self._proc.wait()
+            for f in (self._proc.stdin, self._proc.stdout):
+                try:
+                    f.close()  # type: ignore[union-attr]
+                except OSError:
+                    pass
+            self._proc = None
+        shutil.rmtree(self._dir, ignore_errors=True)
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown
+            pass
+
+
+_LEN = struct.Struct("<Q")
+
+
+def write_frame_file(path: Path, obj: object) -> None:
+    """``obj`` as a pickle whose arrays are stored apart, each 64-byte aligned (protocol 5 out-of-band
+    buffers): ``read_frame_file`` maps them instead of copying ~2 MB per frame."""
+    buffers: list[pickle.PickleBuffer] = []
+    head = pickle.dumps(obj, protocol=5, buffer_callback=buffers.append)
+    raws = [b.raw() for b in buffers]
+    with open(path, "wb") as f:
+        f.write(_LEN.pack(len(raws)) + _LEN.pack(len(head)) + b"".join(_LEN.pack(r.nbytes) for r in raws) + head)
+        for r in raws:
+            f.write(b"\0" * (-f.tell() % 64))
+            f.write(r)
+
+
+def read_frame_file(path: Path) -> object:
+    """The object ``write_frame_file`` stored; its arrays are copy-on-write views of the mapped file (writable,
+    the file itself never changes), alive as long as they are."""
+    with open(path, "rb") as f:
+        mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_COPY)
+    view = memoryview(mm)
+    (nbuf,), (nhead,) = _LEN.unpack_from(view, 0), _LEN.unpack_from(view, 8)
+    sizes = [_LEN.unpack_from(view, 16 + 8 * i)[0] for i in range(nbuf)]
+    pos = 16 + 8 * nbuf
+    head = view[pos:pos + nhead]
+    pos += nhead
+    buffers = []
+    for n in sizes:
+        pos += -pos % 64
+        buffers.append(view[pos:pos + n])
+        pos += n
+    return pickle.loads(head, buffers=buffers)
+
+
+def _ram_dir() -> str | None:
+    """A folder on a RAM file system for the frame files, None (the default temp folder) if there is none."""
+    return "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else None
+
+
+def frontend_only(cfg):
+    """``cfg`` with what the front end does not use switched off (no loop database, IMU, map file or BA
+    worker is built in the child)."""
+    return replace(cfg, loop=replace(cfg.loop, enabled=False), load_map="", save_map=False,
+                   inertial=replace(cfg.inertial, enabled=False), mapping=replace(cfg.mapping, ba_lag_frames=0))
+
+
+def _portable(e: Exception) -> Exception:
+    """``e`` if it survives a pickle round trip as itself, else the same message in a type that does (a
+    VslamError stays a VslamError: the CLI prints those as one line)."""
+    try:
+        back = pickle.loads(pickle.dumps(e))
+        if type(back) is type(e) and str(back) == str(e):
+            return e
+    except Exception:
+        pass
+    return VslamError(str(e)) if isinstance(e, VslamError) else RuntimeError(f"{type(e).__name__}: {e}")
+
+
+def _serve() -> None:
+    out = childproc.result_stream()
+    inp = sys.stdin.buffer
+    try:
+        folder = str(childproc.receive(inp))
+        with open(Path(folder, "spec.pkl"), "rb") as f:
+            seq, n, calibration, sensor, cfg, torch_threads, ahead = pickle.load(f)
+        try:
+            from vslam.tracking.slam import SlamTracker
+
+            tracker = SlamTracker(calibration, sensor, frontend_only(cfg))
+            torch = sys.modules.get("torch")
+            if torch is not None and torch_threads > 0:
+                torch.set_num_threads(torch_threads)
+            for k, frame in enumerate(seq):
+                if k >= n:
+                    break
+                if k >= ahead and not inp.read(1):  # the parent has read frame k - ahead (EOF: it stopped)
+                    return
+                write_frame_file(Path(folder, f"{k}.pkl"), (frame, tracker.frontend(frame)))
+                childproc.send(out, ("frame", k))
+            childproc.send(out, ("done",))
+        except Exception as e:  # raised in the parent where it waits for the next frame
+            childproc.send(out, ("error", _portable(e)))
+    except (BrokenPipeError, KeyboardInterrupt, EOFError):  # the parent stopped reading / was interrupted
+        pass
+
+
+if __name__ == "__main__":
+    _serve()
