@@ -109,3 +109,20 @@ def test_a_sequence_that_cannot_be_sent_runs_on_the_thread(tmp_path, caplog):
         res = Pipeline(_pc(tmp_path, "fallback", {}, n=6)).run(seq)
     assert "front end on a thread" in caplog.text
     np.testing.assert_array_equal(res.trajectory.poses, ref.trajectory.poses)
+
+
+class _WarningSequence(SyntheticSequence):
+    def __iter__(self):
+        for k, frame in enumerate(super().__iter__()):
+            if k == 2:
+                logging.getLogger("vslam.data.synthetic").warning("frame %d: a test warning from the reader", k)
+            yield frame
+
+
+def test_the_child_s_log_records_reach_this_process_s_loggers(tmp_path, caplog):
+    seq = _WarningSequence(SyntheticConfig(n_frames=4, **SMALL), sensor="rgbd")
+    with caplog.at_level(logging.INFO):
+        Pipeline(_pc(tmp_path, "warn", {}, n=4)).run(seq)
+    hits = [r for r in caplog.records if "a test warning from the reader" in r.getMessage()]
+    assert len(hits) == 1 and hits[0].name == "vslam.data.synthetic" and hits[0].levelname == "WARNING"
+    assert hits[0].getMessage() == "frame 2: a test warning from the reader"

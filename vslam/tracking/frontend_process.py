@@ -16,11 +16,12 @@ child stays at most ``ahead`` frames ahead: after that it waits for one acknowle
 The child builds its own ``SlamTracker`` from the same calibration, sensor and config (loop closing, IMU,
 saved maps and the BA worker off: the front end uses none of them) and runs the same ``frontend`` code on the
 same frames, so the numbers are those of the thread, bit for bit; it reads the sequence itself (the sequence
-is pickled to it).
+is pickled to it). Its log records (a frame that does not decode) go to this process's loggers.
 """
 
 from __future__ import annotations
 
+import logging
 import mmap
 import os
 import pickle
@@ -29,6 +30,7 @@ import struct
 import subprocess
 import sys
 import tempfile
+import threading
 from dataclasses import replace
 from pathlib import Path
 from typing import Iterator
@@ -51,7 +53,8 @@ class FrontEndProcess:
         self._dir = Path(tempfile.mkdtemp(prefix="vslam-frontend-", dir=_ram_dir()))
         try:  # the spec goes through a file: the pipe would hold this thread until the child has imported
             with open(self._dir / "spec.pkl", "wb") as f:
-                pickle.dump((seq, n, calibration, sensor, cfg, torch_threads, ahead), f, protocol=pickle.HIGHEST_PROTOCOL)
+                pickle.dump((seq, n, calibration, sensor, cfg, torch_threads, ahead,
+                             logging.getLogger("vslam").getEffectiveLevel()), f, protocol=pickle.HIGHEST_PROTOCOL)
         except BaseException:
             shutil.rmtree(self._dir, ignore_errors=True)
             raise
@@ -69,6 +72,10 @@ class FrontEndProcess:
                     return
                 if msg[0] == "error":  # type: ignore[index]
                     raise msg[1]  # type: ignore[index,misc]
+                if msg[0] == "log":  # type: ignore[index]
+                    record = logging.makeLogRecord(msg[1])  # type: ignore[index]
+                    logging.getLogger(record.name).handle(record)
+                    continue
                 path = self._dir / f"{msg[1]}.pkl"  # type: ignore[index]
                 item = read_frame_file(path)
                 path.unlink()  # its memory stays mapped while the frame's arrays live
@@ -160,13 +167,36 @@ def _portable(e: Exception) -> Exception:
     return VslamError(str(e)) if isinstance(e, VslamError) else RuntimeError(f"{type(e).__name__}: {e}")
 
 
+class _ForwardLogs(logging.Handler):
+    """Sends the child's log records to the parent, which hands them to its own loggers: the same format, level
+    and handlers as a message logged there (a frame that does not decode, for instance)."""
+
+    def __init__(self, send) -> None:
+        super().__init__()
+        self._send = send
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self._send(("log", {"name": record.name, "levelno": record.levelno, "levelname": record.levelname,
+                            "msg": record.getMessage(), "pathname": record.pathname, "lineno": record.lineno,
+                            "funcName": record.funcName, "created": record.created}))
+
+
 def _serve() -> None:
     out = childproc.result_stream()
     inp = sys.stdin.buffer
+    lock = threading.Lock()  # the log handler may send from another thread (the lines pool)
+
+    def send(msg: object) -> None:
+        with lock:
+            childproc.send(out, msg)
+
     try:
         folder = str(childproc.receive(inp))
         with open(Path(folder, "spec.pkl"), "rb") as f:
-            seq, n, calibration, sensor, cfg, torch_threads, ahead = pickle.load(f)
+            seq, n, calibration, sensor, cfg, torch_threads, ahead, log_level = pickle.load(f)
+        root = logging.getLogger()
+        root.handlers[:] = [_ForwardLogs(send)]
+        root.setLevel(log_level)
         try:
             from vslam.tracking.slam import SlamTracker
 
@@ -180,10 +210,10 @@ def _serve() -> None:
                 if k >= ahead and not inp.read(1):  # the parent has read frame k - ahead (EOF: it stopped)
                     return
                 write_frame_file(Path(folder, f"{k}.pkl"), (frame, tracker.frontend(frame)))
-                childproc.send(out, ("frame", k))
-            childproc.send(out, ("done",))
+                send(("frame", k))
+            send(("done",))
         except Exception as e:  # raised in the parent where it waits for the next frame
-            childproc.send(out, ("error", _portable(e)))
+            send(("error", _portable(e)))
     except (BrokenPipeError, KeyboardInterrupt, EOFError):  # the parent stopped reading / was interrupted
         pass
 
