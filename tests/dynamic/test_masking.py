@@ -202,10 +202,12 @@ def test_detector_boxes_are_remembered_for_box_memory_s():
 
     uv = np.array([[10.0, 10.0], [40.0, 10.0]])
     f = Features(uv, uv, np.zeros((2, 32), np.uint8), np.zeros(2), np.zeros(2))
-    flt = DynamicFilter(DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.15), CAM, detector=Blink())
+    flt = DynamicFilter(DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.15, box_track_s=0.0),
+                        CAM, detector=Blink())
     kept = [flt.keep(Frame(i, t, np.zeros((48, 64), np.uint8)), f).tolist() for i, t in enumerate((0.0, 0.1, 0.2))]
     assert kept == [[False, True], [False, True], [True, True]]
-    none = DynamicFilter(DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.0), CAM, detector=Blink())
+    none = DynamicFilter(DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.0, box_track_s=0.0),
+                         CAM, detector=Blink())
     assert [none.keep(Frame(i, t, np.zeros((48, 64), np.uint8)), f).tolist() for i, t in enumerate((0.0, 0.1))] == [[False, True], [True, True]]
 
 
@@ -225,7 +227,7 @@ def test_detect_every_runs_the_detector_on_every_nth_frame_and_holds_its_boxes_b
 
     uv = np.array([[5.0, 10.0], [25.0, 10.0], [45.0, 10.0]])
     f = Features(uv, uv, np.zeros((3, 32), np.uint8), np.zeros(3), np.zeros(3))
-    cfg = DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.0, detect_every=3)
+    cfg = DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.0, box_track_s=0.0, detect_every=3)
     det = Walker()
     flt = DynamicFilter(cfg, CAM, detector=det)
     frames = [Frame(i, 0.1 * i, np.full((48, 64), i, np.uint8)) for i in range(7)]
@@ -291,3 +293,43 @@ def test_extra_weights_load_one_network_each():
     assert len(DynamicFilter(dataclasses.replace(cfg, source="gt_mask"), CAM).extra) == 0
     with pytest.raises(ConfigError, match=r"nope\.pt: detector weights not found \(slam\.dynamic\.extra_weights\)"):
         DynamicFilter(dataclasses.replace(cfg, extra_weights=("nope.pt",)), CAM)
+
+
+def test_a_box_the_detector_loses_is_followed_by_its_keypoints_for_box_track_s():
+    """A person found at t = 0 only, whose keypoints move 5 px right per frame: with box_track_s its box follows
+    them (still masked at 0.3 s, a static keypoint beside it is not), without it the person leaks at once, and
+    it expires after box_track_s; keypoints that match nothing leave the box where it was."""
+    from vslam.dynamic.detector import Detections
+
+    class Blink:  # detects the person in the first frame only
+        def __init__(self):
+            self.calls = 0
+
+        def detect(self, image):
+            self.calls += 1
+            if self.calls == 1:
+                return Detections(np.array([[10.0, 10, 30, 40]]), np.array([0.9]), np.array([0]), np.array(["person"], dtype=object))
+            return Detections(np.zeros((0, 4)), np.zeros(0), np.zeros(0, np.int64), np.array([], dtype=object))
+
+    rng = np.random.default_rng(0)
+    person = np.stack(np.meshgrid([14.0, 20.0, 26.0], [15.0, 25.0, 35.0]), -1).reshape(-1, 2)
+    desc = rng.integers(0, 256, (len(person) + 1, 32), dtype=np.uint8)
+
+    def feats(k: int, same_desc: bool = True) -> Features:
+        uv = np.vstack([person + [5.0 * k, 0.0], [[8.0, 44.0]]])
+        d = desc if same_desc else rng.integers(0, 256, desc.shape, dtype=np.uint8)
+        return Features(uv, uv.copy(), d, np.zeros(len(uv), np.int64), np.ones(len(uv)))
+
+    def run(track_s: float, same_desc: bool = True) -> list[list[bool]]:
+        cfg = DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.0, box_track_s=track_s)
+        flt = DynamicFilter(cfg, CAM, detector=Blink())
+        return [flt.keep(Frame(k, 0.1 * k, np.zeros((48, 64), np.uint8)), feats(k, k == 0 or same_desc)).tolist()
+                for k in range(4)]
+
+    person_kept = lambda rows: [sum(r[:-1]) for r in rows]  # noqa: E731
+    followed = run(1.0)
+    assert person_kept(followed) == [0, 0, 0, 0] and all(r[-1] for r in followed)
+    assert person_kept(run(0.0)) == [0, 9, 9, 9]
+    assert person_kept(run(0.15)) == [0, 0, 9, 9]  # followed until 0.15 s after the last detection
+    # no match inside the box: it stays at x 10-30, and the person's points that moved past x = 30 leak
+    assert person_kept(run(1.0, same_desc=False)) == [0, 3, 3, 6]

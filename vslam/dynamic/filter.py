@@ -54,6 +54,8 @@ class DynamicFilter:
         self._region_boxes = np.zeros((0, 4))
         self._region_grow = 0.0
         self._span: tuple[tuple[int, float], np.ndarray] | None = None  # (frame key, ``_depth_span``)
+        self._tracks: list[tuple[float, np.ndarray]] = []  # (time last detected, box now) (``box_track_s``)
+        self._prev: Features | None = None  # the previous frame's keypoints, all of them
 
     def _load(self, path: str | Path, field_name: str) -> object:
         from vslam.device import pick_device
@@ -98,11 +100,42 @@ class DynamicFilter:
             self._recent.append((frame.timestamp, self._boxes))
             while frame.timestamp - self._recent[0][0] > c.box_memory_s + 1e-6:
                 self._recent.popleft()
-            boxes = np.concatenate([b for _, b in self._recent])
+            boxes = np.concatenate([b for _, b in self._recent] + [self._follow(feats, frame.timestamp)])
             if len(self._static) and len(boxes):
                 boxes = boxes[box_iou(boxes, self._static).max(axis=1) < 0.5]
             self._region_boxes, self._region_grow = boxes, c.box_grow
         return self._on_dynamic(feats.raw)
+
+    def _follow(self, feats: Features, t: float) -> np.ndarray:
+        """(K,4) boxes of objects the detector found within ``box_track_s`` but not in this frame, moved with them:
+        each by the median displacement of the keypoints matched into this frame from inside it in the previous
+        one (raw pixels, ORB-SLAM-style guided matching within 40 px)."""
+        c = self.cfg
+        if c.box_track_s <= 0:
+            return np.zeros((0, 4))
+        from vslam.features.matching import match_by_projection
+
+        fresh = self._boxes
+        out: list[tuple[float, np.ndarray]] = []
+        for seen, box in self._tracks:
+            if t - seen > c.box_track_s + 1e-6 or (len(fresh) and box_iou(box[None], fresh).max() >= 0.3):
+                continue
+            prev = self._prev
+            if prev is not None and len(prev) and len(feats):
+                inside = np.flatnonzero(in_boxes(prev.raw, box[None]))
+                pairs = match_by_projection(prev.raw[inside], prev.desc[inside], feats.raw, feats.desc, 40.0,
+                                            ratio=0.8)
+                if len(pairs) >= c.box_track_min_matches:
+                    d = np.median(feats.raw[pairs[:, 1]] - prev.raw[inside[pairs[:, 0]]], axis=0)
+                    box = box + np.r_[d, d]
+            w, h = self.cam.width, self.cam.height
+            clipped = np.clip(box, [0, 0, 0, 0], [w, h, w, h])
+            if (clipped[2] - clipped[0]) * (clipped[3] - clipped[1]) > 0.25 * (box[2] - box[0]) * (box[3] - box[1]):
+                out.append((seen, box))  # gone when most of it has left the image
+        followed = np.array([b for _, b in out]).reshape(-1, 4)
+        self._tracks = out + [(t, b) for b in fresh]
+        self._prev = feats
+        return followed
 
     def _on_dynamic(self, raw_uv: np.ndarray) -> np.ndarray:
         """(N,) bool: raw pixels inside this frame's dynamic masks or boxes (as set by ``dynamic_source``)."""
