@@ -16,7 +16,7 @@ from vslam.data.synthetic import SyntheticConfig, SyntheticSequence
 from vslam.data.types import Frame
 from vslam.errors import DatasetError
 from vslam.pipeline import Pipeline, PipelineConfig
-from vslam.tracking.frontend_process import FrontEndProcess, read_frame_file, write_frame_file
+from vslam.tracking.frontend_process import FrontEndProcess, _ram_dir, read_frame_file, write_frame_file
 from vslam.tracking.slam import SlamConfig
 
 SMALL = dict(width=320, height=240, fx=262.5, fy=262.5, n_movers=0)
@@ -68,6 +68,7 @@ def test_child_stops_and_its_frame_files_go_away(tmp_path):
     it = iter(child)
     frames = [next(it) for _ in range(2)]
     assert [f.index for f, _ in frames] == [0, 1] and len(frames[0][1].feats) > 0
+    assert not (folder / "spec.pkl").exists()  # read once, then removed (a synthetic sequence is ~40 MB)
     child.close()  # early stop: the child is killed, not waited for
     assert proc.poll() is not None and not folder.exists()
     full = FrontEndProcess(seq, 5, seq.calibration, "rgbd", SlamConfig(), blas_threads=1, ahead=2)
@@ -126,3 +127,7 @@ def test_the_child_s_log_records_reach_this_process_s_loggers(tmp_path, caplog):
     hits = [r for r in caplog.records if "a test warning from the reader" in r.getMessage()]
     assert len(hits) == 1 and hits[0].name == "vslam.data.synthetic" and hits[0].levelname == "WARNING"
     assert hits[0].getMessage() == "frame 2: a test warning from the reader"
+
+
+def test_frame_files_leave_a_nearly_full_ram_disk_alone():
+    assert _ram_dir(min_free=1 << 62) is None  # the default temp folder then

@@ -143,9 +143,15 @@ def read_frame_file(path: Path) -> object:
     return pickle.loads(head, buffers=buffers)
 
 
-def _ram_dir() -> str | None:
-    """A folder on a RAM file system for the frame files, None (the default temp folder) if there is none."""
-    return "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else None
+def _ram_dir(min_free: int = 256 << 20) -> str | None:
+    """A folder on a RAM file system for the frame files, None (the default temp folder) if there is none or it
+    has less than ``min_free`` bytes free (a container's /dev/shm is often 64 MB: 8 frames of 1280x720 RGB-D
+    nearly fill it)."""
+    try:
+        ok = os.access("/dev/shm", os.W_OK) and shutil.disk_usage("/dev/shm").free >= min_free
+    except OSError:
+        ok = False
+    return "/dev/shm" if ok else None
 
 
 def frontend_only(cfg):
@@ -192,8 +198,10 @@ def _serve() -> None:
 
     try:
         folder = str(childproc.receive(inp))
-        with open(Path(folder, "spec.pkl"), "rb") as f:
+        spec = Path(folder, "spec.pkl")
+        with open(spec, "rb") as f:
             seq, n, calibration, sensor, cfg, torch_threads, ahead, log_level = pickle.load(f)
+        spec.unlink()  # a synthetic sequence pickles to ~40 MB: not kept in RAM for the whole run
         root = logging.getLogger()
         root.handlers[:] = [_ForwardLogs(send)]
         root.setLevel(log_level)
