@@ -186,28 +186,31 @@ def test_keypoints_on_depth_edges_are_not_checked():
     np.testing.assert_allclose(off._check_depth(frame, f.raw)[:4], [2.0, 2.0, 3.0, 3.0])
 
 
+class _Blink:
+    """A detector that finds one person box in the first frame only."""
+
+    def __init__(self, box):
+        self.box, self.calls = np.asarray(box, dtype=np.float64).reshape(1, 4), 0
+
+    def detect(self, image):
+        from vslam.dynamic.detector import Detections
+
+        self.calls += 1
+        if self.calls == 1:
+            return Detections(self.box, np.array([0.9]), np.array([0]), np.array(["person"], dtype=object))
+        return Detections(np.zeros((0, 4)), np.zeros(0), np.zeros(0, np.int64), np.array([], dtype=object))
+
+
 def test_detector_boxes_are_remembered_for_box_memory_s():
     """A person found at t = 0 and missed at t = 0.1 s is still masked then (box_memory_s = 0.15), not at 0.2 s."""
-    from vslam.dynamic.detector import Detections
-
-    class Blink:  # detects the person in the first frame only
-        def __init__(self):
-            self.calls = 0
-
-        def detect(self, image):
-            self.calls += 1
-            if self.calls == 1:
-                return Detections(np.array([[0.0, 0, 20, 20]]), np.array([0.9]), np.array([0]), np.array(["person"], dtype=object))
-            return Detections(np.zeros((0, 4)), np.zeros(0), np.zeros(0, np.int64), np.array([], dtype=object))
-
     uv = np.array([[10.0, 10.0], [40.0, 10.0]])
     f = Features(uv, uv, np.zeros((2, 32), np.uint8), np.zeros(2), np.zeros(2))
     flt = DynamicFilter(DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.15, box_track_s=0.0),
-                        CAM, detector=Blink())
+                        CAM, detector=_Blink([0.0, 0, 20, 20]))
     kept = [flt.keep(Frame(i, t, np.zeros((48, 64), np.uint8)), f).tolist() for i, t in enumerate((0.0, 0.1, 0.2))]
     assert kept == [[False, True], [False, True], [True, True]]
     none = DynamicFilter(DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.0, box_track_s=0.0),
-                         CAM, detector=Blink())
+                         CAM, detector=_Blink([0.0, 0, 20, 20]))
     assert [none.keep(Frame(i, t, np.zeros((48, 64), np.uint8)), f).tolist() for i, t in enumerate((0.0, 0.1))] == [[False, True], [True, True]]
 
 
@@ -299,18 +302,6 @@ def test_a_box_the_detector_loses_is_followed_by_its_keypoints_for_box_track_s()
     """A person found at t = 0 only, whose keypoints move 5 px right per frame: with box_track_s its box follows
     them (still masked at 0.3 s, a static keypoint beside it is not), without it the person leaks at once, and
     it expires after box_track_s; keypoints that match nothing leave the box where it was."""
-    from vslam.dynamic.detector import Detections
-
-    class Blink:  # detects the person in the first frame only
-        def __init__(self):
-            self.calls = 0
-
-        def detect(self, image):
-            self.calls += 1
-            if self.calls == 1:
-                return Detections(np.array([[10.0, 10, 30, 40]]), np.array([0.9]), np.array([0]), np.array(["person"], dtype=object))
-            return Detections(np.zeros((0, 4)), np.zeros(0), np.zeros(0, np.int64), np.array([], dtype=object))
-
     rng = np.random.default_rng(0)
     person = np.stack(np.meshgrid([14.0, 20.0, 26.0], [15.0, 25.0, 35.0]), -1).reshape(-1, 2)
     desc = rng.integers(0, 256, (len(person) + 1, 32), dtype=np.uint8)
@@ -322,7 +313,7 @@ def test_a_box_the_detector_loses_is_followed_by_its_keypoints_for_box_track_s()
 
     def run(track_s: float, same_desc: bool = True) -> list[list[bool]]:
         cfg = DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.0, box_track_s=track_s)
-        flt = DynamicFilter(cfg, CAM, detector=Blink())
+        flt = DynamicFilter(cfg, CAM, detector=_Blink([10.0, 10, 30, 40]))
         return [flt.keep(Frame(k, 0.1 * k, np.zeros((48, 64), np.uint8)), feats(k, k == 0 or same_desc)).tolist()
                 for k in range(4)]
 
