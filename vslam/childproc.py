@@ -23,11 +23,7 @@ _HEADER = struct.Struct("<Q")
 
 
 def send(f: BinaryIO, obj: object) -> None:
-    send_pickled(f, pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL))
-
-
-def send_pickled(f: BinaryIO, data: bytes) -> None:
-    """``send`` of an object the caller pickled already (to learn that it can be, before starting a child)."""
+    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
     f.write(_HEADER.pack(len(data)))
     f.write(data)
     f.flush()

@@ -206,15 +206,15 @@ def torch_threads(cfg: SlamConfig | None) -> Iterator[None]:
 
 def _frontend_process(seq: Sequence, n: int, cfg: PipelineConfig):
     """A ``FrontEndProcess`` for the run (``SlamConfig.frontend_process``), or None -- the prefetch thread
-    then -- when the sequence cannot be sent to a child process."""
+    then -- when the sequence cannot be sent to a child process or no child can be started."""
     from vslam.tracking.frontend_process import FrontEndProcess
 
     try:
         return FrontEndProcess(seq, n, seq.calibration, cfg.dataset.sensor, cfg.slam,
                                torch_threads=cfg.slam.torch_threads or max(1, _cpus() - 1),
                                blas_threads=cfg.slam.blas_threads)
-    except (TypeError, AttributeError, pickle.PicklingError) as e:
-        log.info("front end on a thread: the sequence cannot be sent to a child process (%s)", e)
+    except (TypeError, AttributeError, pickle.PicklingError, OSError) as e:
+        log.info("front end on a thread: the sequence cannot be sent to a child process, or none started (%s)", e)
         return None
 
 
@@ -271,7 +271,7 @@ class Pipeline:
                 k = -1
                 while True:
                     t_wait = time.perf_counter()
-                    item = next(frames, None)  # made on a background thread: this is the time tracking waited
+                    item = next(frames, None)  # made ahead, beside tracking: this is the time tracking waited
                     if item is None:  # the generator is exhausted (and has joined its thread)
                         break
                     frame, front = item

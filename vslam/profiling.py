@@ -32,8 +32,8 @@ ORDER = ("decode", "features", "detector", "dynamic", "lines", "depth", "pose", 
 
 
 def profile(stats_csv: str | Path) -> dict[str, Any]:
-    """-> {"frames": N, "stages": {stage: {"mean_ms", "median_ms", "frames", "share"}}, "peak_rss_mb": this process and its largest
-    child}."""
+    """-> {"frames": N, "stages": {stage: {"mean_ms", "median_ms", "frames", "share"}}, "peak_rss_mb": this
+    process and its largest child}."""
     with open(stats_csv, newline="") as f:
         rows = list(csv.DictReader(f))
     cols = [c[3:] for c in (rows[0] if rows else {}) if c.startswith("ms_")]

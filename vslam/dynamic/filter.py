@@ -14,6 +14,7 @@ from vslam.dynamic.config import DynamicConfig
 from vslam.dynamic.masking import box_iou, dilate, in_boxes, in_mask
 from vslam.dynamic.motion import GeometricCheck
 from vslam.features.base import Features
+from vslam.features.matching import match_by_projection
 
 log = logging.getLogger(__name__)
 
@@ -113,8 +114,6 @@ class DynamicFilter:
         c = self.cfg
         if c.box_track_s <= 0:
             return np.zeros((0, 4))
-        from vslam.features.matching import match_by_projection
-
         fresh = self._boxes
         out: list[tuple[float, np.ndarray]] = []
         for seen, box in self._tracks:

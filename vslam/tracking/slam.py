@@ -64,8 +64,8 @@ class SlamConfig:
     frontend_thread: bool = True
     # With frontend_thread: decode the frames and run that front end in a child process instead of a thread
     # (``vslam.tracking.frontend_process``: GTSAM's BA holds the GIL, and a thread cannot work ahead through it).
-    # The same numbers bit for bit. 2026-12-04, 2 cores, one sweep run each: TUM teddy ORB-only 32.5 -> 30.3
-    # ms/frame, the learned pipeline 97.8 -> 70.9 (bench rows tum-teddy-rgbd / tum-teddy-people-rgbd-learned and
+    # The same numbers bit for bit. 2026-12-04 21:37, 2 cores, alone, median of 3: TUM teddy ORB-only 32.7 -> 29.8
+    # ms/frame, the learned pipeline 96.5 -> 71.8 (bench rows tum-teddy-rgbd / tum-teddy-people-rgbd-learned and
     # their -frontend-thread rows). A sequence that cannot be pickled to the child runs on the thread.
     frontend_process: bool = True
     # LSD segments on a thread of their own, beside the networks: on a GPU ConvPoint and the detector take ~5 ms
