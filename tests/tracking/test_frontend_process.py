@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import csv
 import logging
+import os
+import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -16,7 +19,8 @@ from vslam.data.synthetic import SyntheticConfig, SyntheticSequence
 from vslam.data.types import Frame
 from vslam.errors import DatasetError
 from vslam.pipeline import Pipeline, PipelineConfig
-from vslam.tracking.frontend_process import FrontEndProcess, _ram_dir, read_frame_file, write_frame_file
+from vslam.tracking.frontend_process import (FrontEndProcess, _ram_dir, read_frame_file, remove_stale_folders,
+                                             write_frame_file)
 from vslam.tracking.slam import SlamConfig
 
 SMALL = dict(width=320, height=240, fx=262.5, fy=262.5, n_movers=0)
@@ -131,3 +135,14 @@ def test_the_child_s_log_records_reach_this_process_s_loggers(tmp_path, caplog):
 
 def test_frame_files_leave_a_nearly_full_ram_disk_alone():
     assert _ram_dir(min_free=1 << 62) is None  # the default temp folder then
+
+
+def test_folders_of_runs_that_died_are_removed_and_live_ones_kept(tmp_path):
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()  # its pid is free now (reuse within this test is practically impossible)
+    (tmp_path / f"vslam-frontend-{dead.pid}-abc").mkdir()
+    (tmp_path / f"vslam-frontend-{dead.pid}-abc" / "3.pkl").write_bytes(b"x")
+    (tmp_path / f"vslam-frontend-{os.getpid()}-def").mkdir()
+    (tmp_path / "vslam-frontend-notapid-x").mkdir()
+    assert remove_stale_folders(tmp_path) == [tmp_path / f"vslam-frontend-{dead.pid}-abc"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"vslam-frontend-{os.getpid()}-def", "vslam-frontend-notapid-x"]

@@ -50,7 +50,9 @@ class FrontEndProcess:
     def __init__(self, seq: Sequence, n: int, calibration: Calibration, sensor: SensorKind, cfg,
                  torch_threads: int = 0, blas_threads: int | None = None, ahead: int = 8):
         self._proc: subprocess.Popen | None = None
-        self._dir = Path(tempfile.mkdtemp(prefix="vslam-frontend-", dir=_ram_dir()))
+        ram = _ram_dir()
+        remove_stale_folders(Path(ram or tempfile.gettempdir()))
+        self._dir = Path(tempfile.mkdtemp(prefix=f"{_PREFIX}{os.getpid()}-", dir=ram))
         try:  # the spec goes through a file: the pipe would hold this thread until the child has imported
             with open(self._dir / "spec.pkl", "wb") as f:
                 pickle.dump((seq, n, calibration, sensor, cfg, torch_threads, ahead,
@@ -141,6 +143,27 @@ def read_frame_file(path: Path) -> object:
         buffers.append(view[pos:pos + n])
         pos += n
     return pickle.loads(head, buffers=buffers)
+
+
+_PREFIX = "vslam-frontend-"  # + the tracking process's pid: whose frame files a folder holds
+
+
+def remove_stale_folders(root: Path) -> list[Path]:
+    """Remove frame-file folders left in ``root`` by runs whose process no longer exists (killed before it could
+    clean up: up to ``ahead`` frames, ~18 MB of RAM on TUM). -> the folders removed."""
+    gone = []
+    for d in root.glob(f"{_PREFIX}*-*"):
+        pid = d.name[len(_PREFIX):].split("-", 1)[0]
+        if not pid.isdigit() or not d.is_dir():
+            continue
+        try:
+            os.kill(int(pid), 0)  # signal 0: does the process exist?
+        except ProcessLookupError:
+            shutil.rmtree(d, ignore_errors=True)
+            gone.append(d)
+        except OSError:  # exists, owned by someone else
+            pass
+    return gone
 
 
 def _ram_dir(min_free: int = 256 << 20) -> str | None:
