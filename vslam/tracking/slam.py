@@ -66,7 +66,9 @@ class SlamConfig:
     # (``vslam.tracking.frontend_process``: GTSAM's BA holds the GIL, and a thread cannot work ahead through it).
     # The same numbers bit for bit. 2026-12-04 21:37, 2 cores, alone, median of 3: TUM teddy ORB-only 32.7 -> 29.8
     # ms/frame, the learned pipeline 96.5 -> 71.8 (bench rows tum-teddy-rgbd / tum-teddy-people-rgbd-learned and
-    # their -frontend-thread rows). A sequence that cannot be pickled to the child runs on the thread.
+    # their -frontend-thread rows). The child's start (~0.5 s) counts too: on short subsets it costs more than
+    # it saves (EuRoC stereo, 95 frames: 43.6 vs 38.8 ms/frame; README). A sequence that cannot be pickled to the
+    # child runs on the thread.
     frontend_process: bool = True
     # LSD segments on a thread of their own, beside the networks: on a GPU ConvPoint and the detector take ~5 ms
     # each and LSD (CPU) ~19 ms (bench row network-speed-gpu), so in a row the front end costs their sum, side by
