@@ -187,6 +187,12 @@ def blas_threads(cfg: SlamConfig | None) -> Iterator[None]:
         yield
 
 
+def torch_thread_count(cfg: SlamConfig) -> int:
+    """``SlamConfig.torch_threads``, or 0 resolved: the CPUs, less one for the tracking thread when the front end
+    runs beside it (on a thread or in the child process, which uses the same count)."""
+    return cfg.torch_threads or max(1, _cpus() - (1 if cfg.frontend_thread else 0))
+
+
 @contextlib.contextmanager
 def torch_threads(cfg: SlamConfig | None) -> Iterator[None]:
     """torch's intra-op thread count for a run (``SlamConfig.torch_threads``), restored afterwards; nothing when
@@ -195,7 +201,7 @@ def torch_threads(cfg: SlamConfig | None) -> Iterator[None]:
     if cfg is None or torch is None:
         yield
         return
-    n = cfg.torch_threads or max(1, _cpus() - (1 if cfg.frontend_thread else 0))
+    n = torch_thread_count(cfg)
     before = torch.get_num_threads()
     torch.set_num_threads(n)
     try:
@@ -211,7 +217,7 @@ def _frontend_process(seq: Sequence, n: int, cfg: PipelineConfig):
 
     try:
         return FrontEndProcess(seq, n, seq.calibration, cfg.dataset.sensor, cfg.slam,
-                               torch_threads=cfg.slam.torch_threads or max(1, _cpus() - 1),
+                               torch_threads=torch_thread_count(cfg.slam),
                                blas_threads=cfg.slam.blas_threads)
     except (TypeError, AttributeError, pickle.PicklingError, OSError) as e:
         log.info("front end on a thread: the sequence cannot be sent to a child process, or none started (%s)", e)

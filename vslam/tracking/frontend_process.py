@@ -57,10 +57,10 @@ class FrontEndProcess:
             with open(self._dir / "spec.pkl", "wb") as f:
                 pickle.dump((seq, n, calibration, sensor, cfg, torch_threads, ahead,
                              logging.getLogger("vslam").getEffectiveLevel()), f, protocol=pickle.HIGHEST_PROTOCOL)
-        except BaseException:
+            self._proc = childproc.spawn("vslam.tracking.frontend_process", blas_threads)
+        except BaseException:  # no child: the folder goes now, not with a later run's stale-folder sweep
             shutil.rmtree(self._dir, ignore_errors=True)
             raise
-        self._proc = childproc.spawn("vslam.tracking.frontend_process", blas_threads)
         childproc.send(self._proc.stdin, str(self._dir))  # type: ignore[arg-type]
 
     def __iter__(self) -> Iterator[tuple[Frame, object]]:
