@@ -151,9 +151,10 @@ def prefetch(seq: Sequence, n: int, depth: int = 3,
 # a frame whose timestamp does not increase gets status "duplicate_time" and no trajectory line).
 # ms_map_*: the local-mapping sub-stages, blank on frames that made no keyframe. n_lines / n_line_inliers:
 # segments detected / map lines kept by the pose refinement, blank without line features.
+# imu: "used" / "off" (no usable IMU samples over this stretch: visual-only), blank without an IMU.
 # ms_detector: the dynamic-object detector (slam.dynamic.source=detector), blank otherwise.
 STAT_COLUMNS = ("index", "timestamp", "tracked", "status", "uncertain", "pose_std_m", "pose_std_deg", "n_features",
-                "n_matches", "n_inliers", "n_lines", "n_line_inliers", "ms_decode", "ms_features", "ms_detector",
+                "n_matches", "n_inliers", "n_lines", "n_line_inliers", "imu", "ms_decode", "ms_features", "ms_detector",
                 "ms_dynamic", "ms_lines", "ms_depth", "ms_pose", "ms_mapping", "ms_map_create", "ms_map_fuse_cull",
                 "ms_map_ba", "ms_map_wait", "ms_map_loop", "ms_total")
 
@@ -305,7 +306,7 @@ class Pipeline:
                            "status": est.status_name, "uncertain": int(est.uncertain), "pose_std_m": std_m,
                            "pose_std_deg": std_deg,
                            "n_features": est.n_features, "n_matches": est.n_matches, "n_inliers": est.n_inliers,
-                           "n_lines": est.n_lines, "n_line_inliers": est.n_line_inliers,
+                           "n_lines": est.n_lines, "n_line_inliers": est.n_line_inliers, "imu": est.imu,
                            "ms_decode": ms_decode, **{f"ms_{k2}": v for k2, v in est.times_ms.items()}, "ms_total": ms}
                     sw.writerow([_fmt_stat(c, row.get(c, "")) for c in STAT_COLUMNS])
                     fstats.flush()

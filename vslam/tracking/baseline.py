@@ -61,6 +61,9 @@ class FrameEstimate:
     pose_cov: np.ndarray | None = None
     # poses of earlier frames measured late, by frame index (monocular frames before the map existed)
     backfill: dict[int, np.ndarray] = field(default_factory=dict)
+    # the IMU on this frame (visual-inertial runs): "used", "off" (inertial factors off: samples missing or
+    # rejected over this stretch), "" without an IMU
+    imu: str = ""
 
     @property
     def uncertain(self) -> bool:
