@@ -55,7 +55,10 @@ def spawn(module: str, blas_threads: int | None = None) -> subprocess.Popen:
         blas_threads = min(blas) if blas else 0
     if blas_threads > 0:
         env["OPENBLAS_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(blas_threads)
-    return subprocess.Popen([sys.executable, "-m", module], stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
+    # A session of its own: Ctrl-C in the terminal reaches this process only, which ends the child in order
+    # (``stop``) instead of the child dying mid-message with a KeyboardInterrupt traceback of its own.
+    return subprocess.Popen([sys.executable, "-m", module], stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env,
+                            start_new_session=True)
 
 
 def result_stream() -> BinaryIO:

@@ -1,19 +1,27 @@
 """`vslam` command line: a thin shell over the Python API.
 
 Every user mistake surfaces as a VslamError and is printed as one line
-(``vslam: error: <file>:<line>: <problem>``) with exit code 2.
+(``vslam: error: <file>:<line>: <problem>``) with exit code 2; an output the
+system cannot write (permissions, a full disk) is one line too. SIGTERM ends a
+run as Ctrl-C does: what was written so far is kept, children are ended, one
+line, exit 130 / 143. Anything else is a bug: one line and exit 1, the
+traceback with ``-v``.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import errno
 import logging
+import signal
 import sys
+import traceback
 from pathlib import Path
 from typing import Any, Callable
 
 from vslam import __version__
-from vslam.errors import VslamError
+from vslam.errors import ConfigError, VslamError
 
 
 def _progress_bar(desc: str) -> tuple[Callable[[int, int], None], Callable[[], None]]:
@@ -45,33 +53,51 @@ def _summary(result: Any, out: Path) -> None:
         print("no ground truth: trajectory not evaluated")
 
 
+def _reclaim_sigterm() -> None:
+    """pycolmap's import installs glog's failure handler for SIGTERM (a stack dump, no cleanup): once the
+    pipeline's modules are imported, SIGTERM is ours again (``main``)."""
+    if signal.getsignal(signal.SIGTERM) is _on_sigterm:
+        signal.signal(signal.SIGTERM, _on_sigterm)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from vslam.config import deep_merge, parse_overrides
     from vslam.pipeline import Pipeline, PipelineConfig
+
+    _reclaim_sigterm()
 
     over: dict[str, Any] = {}
     ds: dict[str, Any] = {}
     if args.data:
         ds["path"] = args.data
-        ds["kind"] = args.kind or "auto"
-    elif args.kind:
+    if args.kind:
         ds["kind"] = args.kind
     if args.sensor:
         ds["sensor"] = args.sensor
     if args.max_frames is not None:
+        if args.max_frames <= 0:
+            raise ConfigError(f"--max-frames must be a positive number of frames, got {args.max_frames}")
         ds["max_frames"] = args.max_frames
     if ds:
         over["dataset"] = ds
     if args.out:
         over["output"] = {"dir": args.out}
+    if args.no_eval:
+        over["eval"] = {"enabled": False}
     over = deep_merge(over, parse_overrides(args.set or []))
     cfg = PipelineConfig.load(args.config, over)
+    if args.data and not args.kind and cfg.dataset.kind == "synthetic":
+        # --data names a folder: a config made for the built-in sequence then reads it by its layout. A config
+        # made for one dataset kind keeps it, and a folder of another layout is an error (open_dataset).
+        cfg = dataclasses.replace(cfg, dataset=dataclasses.replace(cfg.dataset, kind="auto"))
     update, close = _progress_bar("tracking")
     try:
         result = Pipeline(cfg).run(progress=update)
     finally:
         close()
     _summary(result, Path(cfg.output.dir))
+    if result.error is not None:  # the outputs are written; what they lack (evaluation, a tracked pose) is an error
+        raise result.error
     if args.profile:  # issue 10: per-stage ms and peak memory, also written as profile.json
         from vslam.profiling import format_profile, write_profile
 
@@ -81,6 +107,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from vslam.pipeline import Pipeline, PipelineConfig
+
+    _reclaim_sigterm()
 
     cfg = PipelineConfig.load(None, {"dataset": {"kind": "synthetic", "sensor": "rgbd", "max_frames": args.frames}, "output": {"dir": args.out}})
     print(f"vslam {__version__} demo: built-in synthetic room (RGB-D, 3 moving boxes, not masked yet), SLAM tracker")
@@ -97,7 +125,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from vslam.eval import EvalConfig, evaluate_files, write_report
 
     cfg = EvalConfig(align=args.align, max_diff=args.max_diff)
-    res = evaluate_files(args.est, args.gt, cfg, est_format=args.est_format, gt_format=args.gt_format, monocular=args.mono)
+    res = evaluate_files(args.est, args.gt, cfg, est_format=args.est_format, gt_format=args.gt_format, monocular=args.mono,
+                         est_times=args.est_times, gt_times=args.gt_times)
     a = res.ate.translation
     scale = f", scale {res.alignment.s:.6f}" if res.alignment.method == "sim3" else ""
     print(f"ATE ({res.alignment.method}{scale}): rmse {a.rmse:.6f} m, mean {a.mean:.6f}, median {a.median:.6f}, max {a.max:.6f}, n {a.n}")
@@ -160,6 +189,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", "-o", help="output folder (default from config: runs/latest)")
     r.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field, e.g. odometry.n_features=2000")
     r.add_argument("--profile", action="store_true", help="print ms per stage and peak memory (also profile.json)")
+    r.add_argument("--no-eval", action="store_true", help="do not read or evaluate the sequence's ground truth")
     r.set_defaults(fn=cmd_run)
 
     d = sub.add_parser("demo", help="run the built-in synthetic sequence end to end")
@@ -175,6 +205,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--align", default="auto", choices=["auto", "se3", "sim3", "none"])
     e.add_argument("--mono", action="store_true", help="monocular estimate: auto alignment becomes Sim3")
     e.add_argument("--max-diff", type=float, default=0.02, help="timestamp association tolerance, seconds")
+    e.add_argument("--times", "--est-times", dest="est_times", metavar="FILE",
+                   help="timestamps of a KITTI-format estimate (one per line, as KITTI's times.txt)")
+    e.add_argument("--gt-times", metavar="FILE", help="timestamps of a KITTI-format ground truth")
     e.add_argument("--out", "-o", help="write report.md/report.html/metrics.json/plots here")
     e.set_defaults(fn=cmd_eval)
 
@@ -226,19 +259,54 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where Python next runs: the same unwinding as Ctrl-C (outputs flushed, children ended)."""
+
+
+def _on_sigterm(signum: int, frame: Any) -> None:
+    raise Terminated
+
+
+def _os_error_line(e: OSError) -> str:
+    where = f"{e.filename}: " if e.filename else ""
+    why = e.strerror or str(e)
+    if e.errno == errno.ENOSPC:
+        why += " (outputs written so far are kept; files not yet written are missing)"
+    return f"{where}{why}"
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     logging.captureWarnings(True)
     try:
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    except ValueError:  # not the main thread (main() called from a thread): leave SIGTERM as it is
+        previous = None
+    try:
         return args.fn(args)
     except VslamError as e:
         print(f"vslam: error: {e}", file=sys.stderr)
         return 2
+    except Terminated:
+        print("vslam: terminated (outputs written so far are kept)", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print("vslam: interrupted (outputs written so far are kept)", file=sys.stderr)
         return 130
+    except OSError as e:  # an output that cannot be written, a device that fails: the system's words, one line
+        print(f"vslam: error: {_os_error_line(e)}", file=sys.stderr)
+        return 2
+    except Exception as e:  # a bug, not a user mistake: say so in one line; -v shows where
+        if args.verbose:
+            traceback.print_exc()
+        print(f"vslam: internal error: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''} "
+              "(a bug: please report it with the command; -v prints the traceback)", file=sys.stderr)
+        return 1
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

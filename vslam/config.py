@@ -1,12 +1,14 @@
 """Typed configs: frozen dataclasses with defaults, overridden by YAML.
 
-An unknown key or a value of the wrong type is a ConfigError naming the key
-and the file, so a typo never silently falls back to a default.
+An unknown key, a key given twice, or a value of the wrong type is a
+ConfigError naming the key and the file, so a typo never silently falls back
+to a default.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from pathlib import Path
@@ -18,9 +20,17 @@ from vslam.errors import ConfigError
 
 C = TypeVar("C")
 
+# With ``nonnegative``, the numbers that may still be negative (a clock offset has a sign; every count,
+# threshold, size and time of the SLAM config has none).
+SIGNED_FIELDS = frozenset({"t_offset_s"})
 
-def from_dict(cls: type[C], data: dict[str, Any] | None, source: str = "<config>", prefix: str = "") -> C:
-    """Build dataclass ``cls`` from a (nested) dict; missing keys keep their defaults."""
+
+def from_dict(cls: type[C], data: dict[str, Any] | None, source: str = "<config>", prefix: str = "",
+              nonnegative: bool = False) -> C:
+    """Build dataclass ``cls`` from a (nested) dict; missing keys keep their defaults.
+
+    ``nonnegative``: every number must be finite and >= 0 (but ``SIGNED_FIELDS``), so that ``n_features=-100``
+    is a config error naming the key, not an OpenCV assertion deep inside a run."""
     data = data or {}
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: '{prefix or 'top level'}' must be a mapping, got {type(data).__name__}")
@@ -32,14 +42,19 @@ def from_dict(cls: type[C], data: dict[str, Any] | None, source: str = "<config>
         if key not in fields:
             known = ", ".join(sorted(fields))
             raise ConfigError(f"{source}: unknown key '{name}' (known: {known})")
-        kwargs[key] = _coerce(hints[key], value, source, name)
-    return cls(**kwargs)
+        kwargs[key] = _coerce(hints[key], value, source, name, nonnegative)
+    try:
+        return cls(**kwargs)
+    except ConfigError as e:  # a __post_init__ check: say where the config came from
+        if str(e).startswith(source):
+            raise
+        raise ConfigError(f"{source}: {e}") from None
 
 
-def _coerce(tp: Any, value: Any, source: str, name: str) -> Any:
+def _coerce(tp: Any, value: Any, source: str, name: str, nonnegative: bool = False) -> Any:
     origin = typing.get_origin(tp)
     if dataclasses.is_dataclass(tp):
-        return from_dict(tp, value, source, prefix=f"{name}.")
+        return from_dict(tp, value, source, prefix=f"{name}.", nonnegative=nonnegative)
     if origin in (typing.Union, types.UnionType):
         args = typing.get_args(tp)
         if value is None and type(None) in args:
@@ -49,7 +64,7 @@ def _coerce(tp: Any, value: Any, source: str, name: str) -> Any:
             if a is type(None):
                 continue
             try:
-                return _coerce(a, value, source, name)
+                return _coerce(a, value, source, name, nonnegative)
             except ConfigError as e:
                 errors.append(str(e))
         raise ConfigError(errors[0] if errors else f"{source}: bad value for '{name}'")
@@ -65,20 +80,21 @@ def _coerce(tp: Any, value: Any, source: str, name: str) -> Any:
         if origin is tuple and args and args[-1] is not Ellipsis:  # fixed-length tuple[A, B, ...]
             if len(value) != len(args):
                 raise ConfigError(f"{source}: '{name}' must have {len(args)} items, got {value!r}")
-            return tuple(_coerce(a, v, source, f"{name}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+            return tuple(_coerce(a, v, source, f"{name}[{i}]", nonnegative) for i, (a, v) in enumerate(zip(args, value)))
         item = args[0] if args else Any
-        items = [_coerce(item, v, source, f"{name}[{i}]") if item is not Any else v for i, v in enumerate(value)]
+        items = [_coerce(item, v, source, f"{name}[{i}]", nonnegative) if item is not Any else v
+                 for i, v in enumerate(value)]
         return tuple(items) if origin is tuple else items
     if tp is Any:
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{source}: '{name}' must be a number, got {value!r}")
-        return float(value)
+        return _check_sign(float(value), source, name, nonnegative)
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{source}: '{name}' must be an integer, got {value!r}")
-        return value
+        return _check_sign(value, source, name, nonnegative)
     if tp is bool:
         if not isinstance(value, bool):
             raise ConfigError(f"{source}: '{name}' must be true or false, got {value!r}")
@@ -90,25 +106,58 @@ def _coerce(tp: Any, value: Any, source: str, name: str) -> Any:
     return value
 
 
+def _check_sign(value: int | float, source: str, name: str, nonnegative: bool) -> int | float:
+    if nonnegative and name.rsplit(".", 1)[-1].split("[")[0] not in SIGNED_FIELDS:
+        if not math.isfinite(value) or value < 0:
+            raise ConfigError(f"{source}: '{name}' must be a finite number >= 0, got {value!r}")
+    return value
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """SafeLoader that refuses a mapping key given twice (PyYAML keeps the last one silently)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)  # type: ignore[no-untyped-call]
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} given twice (first on line {seen[key] + 1})", key_node.start_mark)
+            seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep=deep)
+
+
+def parse_yaml(text: str, where: str) -> Any:
+    """YAML text -> data; a syntax error or a duplicate key is a ConfigError naming ``where`` and the line."""
+    try:
+        return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a SafeLoader subclass)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        at = f"{where}:{mark.line + 1}" if mark is not None and where.endswith((".yaml", ".yml")) else where
+        raise ConfigError(f"{at}: invalid YAML ({getattr(e, 'problem', None) or e})") from None
+
+
 def load_yaml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: config file not found")
     try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
-        raise ConfigError(f"{where}: invalid YAML ({getattr(e, 'problem', e)})") from None
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: cannot read the config ({e})") from None
+    data = parse_yaml(text, str(path))
+    if data is not None and not isinstance(data, dict):
+        raise ConfigError(f"{path}: a config must be a mapping of sections, got {type(data).__name__}")
     return data or {}
 
 
-def load_config(cls: type[C], path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> C:
+def load_config(cls: type[C], path: str | Path | None = None, overrides: dict[str, Any] | None = None,
+                nonnegative: bool = False) -> C:
     """Defaults <- YAML file <- overrides (a nested dict, e.g. from --set a.b=c)."""
     data: dict[str, Any] = load_yaml(path) if path else {}
     if overrides:
         data = deep_merge(data, overrides)
-    return from_dict(cls, data, str(path) if path else "<defaults>")
+    return from_dict(cls, data, str(path) if path else "<defaults>", nonnegative=nonnegative)
 
 
 def deep_merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
@@ -127,9 +176,13 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
         key, raw = item.split("=", 1)
         node = out
         parts = key.strip().split(".")
+        if not all(parts):
+            raise ConfigError(f"--set {item!r}: empty key part in {key!r}")
         for p in parts[:-1]:
             node = node.setdefault(p, {})
-        node[parts[-1]] = yaml.safe_load(raw)
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {item!r}: {p!r} was given a value by an earlier --set")
+        node[parts[-1]] = parse_yaml(raw, f"--set {item}")
     return out
 
 

@@ -33,3 +33,7 @@ class EvalError(VslamError):
 
 class InertialError(VslamError):
     """IMU data cannot serve the request (samples do not cover a window, too few samples, a moving 'still' window)."""
+
+
+class TrackingError(VslamError):
+    """A run that produced no measured pose at all (every frame a placeholder)."""

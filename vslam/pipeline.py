@@ -28,8 +28,9 @@ import yaml
 from vslam.config import from_dict, load_config, to_dict
 from vslam.data.trajectory import Trajectory, TrajectoryWriter, write_trajectory
 from vslam.data.types import Frame, Sequence
-from vslam.errors import ConfigError
+from vslam.errors import ConfigError, DatasetError, TrackingError, VslamError
 from vslam.eval import EvalConfig, EvalResult, evaluate, write_report
+from vslam.outputs import OUTPUT_ERRNOS, OutputError, describe_failure, prepare_run_dir, write_text
 from vslam.paths import data_root
 from vslam.tracking.baseline import FrameEstimate, FrameToFrameOdometry, OdometryConfig
 from vslam.tracking.slam import SlamConfig, SlamTracker
@@ -67,7 +68,7 @@ class PipelineConfig:
 
     @staticmethod
     def load(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> PipelineConfig:
-        return load_config(PipelineConfig, path, overrides)
+        return load_config(PipelineConfig, path, overrides, nonnegative=True)
 
 
 @dataclass
@@ -78,6 +79,9 @@ class RunResult:
     eval: EvalResult | None
     paths: dict[str, Path]
     seconds: float
+    # A problem found once the trajectory was written (ground truth unusable, no frame tracked): the run's
+    # outputs stand, and ``vslam run`` reports it as an error after them.
+    error: VslamError | None = None
 
     @property
     def fps(self) -> float:
@@ -98,11 +102,27 @@ def open_dataset(cfg: DatasetConfig) -> Sequence:
     path = Path(cfg.path).expanduser()
     if not path.is_absolute() and not path.exists():
         path = data_root() / path
-    kind = detect_kind(path) if cfg.kind == "auto" else cfg.kind
+    layout = _layout(path)
+    kind = layout if cfg.kind == "auto" else cfg.kind
+    if layout is not None and kind != layout:
+        raise ConfigError(f"dataset.kind is {kind!r} but {path} has the {layout} layout; use a config for "
+                          f"{layout} (or --kind {layout} with --sensor)")
+    if kind is None:
+        kind = detect_kind(path)  # raises, naming what it looked for
     options: dict[str, Any] = {"sensor": cfg.sensor}
     if kind in ("tum", "euroc"):  # KITTI frames are matched by index, not time
         options["max_diff"] = cfg.max_diff
     return open_sequence(path, kind=kind, **options)
+
+
+def _layout(path: Path) -> str | None:
+    """The dataset kind ``path``'s layout shows, None when it shows none."""
+    from vslam.data.registry import detect_kind
+
+    try:
+        return detect_kind(path)
+    except DatasetError:
+        return None
 
 
 def prefetch(seq: Sequence, n: int, depth: int = 3,
@@ -231,6 +251,16 @@ class Pipeline:
     def __init__(self, config: PipelineConfig = PipelineConfig()):
         self.config = config
 
+    def _evaluate(self, seq: Sequence, traj: Trajectory, result: RunResult, out: Path) -> None:
+        cfg = self.config
+        gt = seq.groundtruth()
+        if gt is None or len(traj) < 3:
+            return
+        result.paths["groundtruth"] = write_trajectory(out / "groundtruth.tum.txt", gt, "tum")
+        result.eval = evaluate(traj, gt, cfg.eval, monocular=cfg.dataset.sensor == "mono")
+        if cfg.output.report:
+            result.paths.update(write_report(result.eval, out / "report", title=f"vslam run: {seq.name}"))
+
     def run(
         self,
         sequence: Sequence | None = None,
@@ -240,9 +270,17 @@ class Pipeline:
         cfg = self.config
         seq = sequence if sequence is not None else open_dataset(cfg.dataset)
         out = Path(out_dir or cfg.output.dir)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "config.yaml").write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
-        paths: dict[str, Path] = {"config": out / "config.yaml"}
+        prepare_run_dir(out, keep=(cfg.slam.load_map,))
+        try:
+            return self._run(seq, out, progress)
+        except OSError as e:  # an output that cannot be written: which one, and what the folder holds
+            if e.errno not in OUTPUT_ERRNOS:
+                raise
+            raise OutputError(describe_failure(out, e)) from None
+
+    def _run(self, seq: Sequence, out: Path, progress: Callable[[int, int], None] | None) -> RunResult:
+        cfg = self.config
+        paths: dict[str, Path] = {"config": write_text(out / "config.yaml", yaml.safe_dump(to_dict(cfg), sort_keys=False))}
         writers = {f: TrajectoryWriter(out / f"trajectory.{f}.txt", f) for f in cfg.output.formats}
         paths.update({f"trajectory_{f}": w.path for f, w in writers.items()})
         n_total = len(seq) if cfg.dataset.max_frames <= 0 else min(len(seq), cfg.dataset.max_frames)
@@ -343,11 +381,15 @@ class Pipeline:
                                                          Trajectory(np.array(stamps), np.array(poses)), "tum")
         traj = Trajectory(np.array(stamps), np.array(poses).reshape(-1, 4, 4))
         result = RunResult(traj, np.array(tracked, bool), stats, None, paths, seconds)
-        gt = seq.groundtruth()
-        if gt is not None and len(traj) >= 3:
-            paths["groundtruth"] = write_trajectory(out / "groundtruth.tum.txt", gt, "tum")
-            result.eval = evaluate(traj, gt, cfg.eval, monocular=cfg.dataset.sensor == "mono")
-            if cfg.output.report:
-                paths.update(write_report(result.eval, out / "report", title=f"vslam run: {seq.name}"))
+        if len(traj) and not any(tracked):
+            # Placeholder poses only (no map was ever made): written, as every frame gets a line, but not a result.
+            result.error = TrackingError(
+                f"no frame of {len(traj)} was tracked: {paths.get('trajectory_tum', out)} holds placeholder poses "
+                f"(status per frame in {stats_path}); check the sensor, the calibration and slam.features")
+        elif cfg.eval.enabled:
+            try:
+                self._evaluate(seq, traj, result, out)
+            except VslamError as e:  # the trajectory is written: report the ground truth's problem after it
+                result.error = e
         log.info("%d frames in %.1f s (%.1f frames/s), %d tracked", len(traj), seconds, result.fps, int(np.sum(tracked)))
         return result

@@ -67,7 +67,9 @@ def format_profile(p: dict[str, Any]) -> str:
 
 def write_profile(stats_csv: str | Path, out: str | Path) -> dict[str, Any]:
     p = profile(stats_csv)
-    Path(out).write_text(json.dumps(p, indent=1) + "\n")
+    from vslam.outputs import write_text
+
+    write_text(out, json.dumps(p, indent=1) + "\n")
     return p
 
 

@@ -44,8 +44,9 @@ def test_detects_each_layout(tmp_path: Path) -> None:
 
 def test_options_reach_the_reader(tmp_path: Path) -> None:
     root = make_tum(tmp_path / "rgbd_dataset_freiburg3_x", depth_offset=0.015)
-    seq = open_sequence(root, max_diff=0.01)
-    assert len(seq) == 5 and all(f.depth is None for f in seq)  # no depth within 10 ms
+    assert len(open_sequence(root, max_diff=0.02)) == 5
+    with pytest.raises(DatasetError, match=r"depth.txt: no rgb image has a depth image within 0.01 s"):
+        open_sequence(root, max_diff=0.01)  # no depth within 10 ms: an RGB-D run would have no depth at all
     assert open_sequence(root, kind="tum", sensor="mono").sensor == "mono"
 
 

@@ -12,7 +12,7 @@ import pytest
 from vslam.data.tum import ROS_DEFAULT_CAMERA, TUM_CAMERAS, TumRgbdSequence, associate
 from vslam.errors import DatasetError
 
-H, W = 6, 8
+H, W = 480, 640  # the freiburg cameras' size: the reader skips an image of another size than its camera
 
 
 def _write_list(path: Path, header: str, rows: list[str]) -> None:
@@ -109,8 +109,10 @@ def test_associate_matches_reference_on_random_streams() -> None:
 def test_max_diff_is_configurable(tmp_path: Path) -> None:
     root = make_tum(tmp_path / "rgbd_dataset_freiburg3_x", depth_offset=0.015)
     assert all(f.depth is not None for f in TumRgbdSequence(root))
-    tight = TumRgbdSequence(root, max_diff=0.01)
-    assert len(tight) == 5 and all(f.depth is None for f in tight)
+    # no depth within 10 ms: an RGB-D run would have no depth at all, which is an error, not 5 empty frames
+    with pytest.raises(DatasetError, match=r"depth.txt: no rgb image has a depth image within 0.01 s .*--sensor mono"):
+        TumRgbdSequence(root, max_diff=0.01)
+    assert all(f.depth is None for f in TumRgbdSequence(root, max_diff=0.01, sensor="mono"))
 
 
 # ------------------------------------------------------------------------------ content
@@ -163,11 +165,11 @@ def test_unknown_camera_uses_ros_default_with_warning(tmp_path: Path, caplog: py
 
 def test_calibration_yaml_overrides(tum_dir: Path) -> None:
     (tum_dir / "calibration.yaml").write_text(
-        "width: 8\nheight: 6\nfx: 100.0\nfy: 101.0\ncx: 4.0\ncy: 3.0\ndistortion_model: none\ndistortion: []\ndepth_scale: 1000\n"
+        "width: 640\nheight: 480\nfx: 100.0\nfy: 101.0\ncx: 4.0\ncy: 3.0\ndistortion_model: none\ndistortion: []\ndepth_scale: 1000\n"
     )
     seq = TumRgbdSequence(tum_dir)
     cam = seq.calibration.cam0
-    assert (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy) == (8, 6, 100.0, 101.0, 4.0, 3.0)
+    assert (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy) == (640, 480, 100.0, 101.0, 4.0, 3.0)
     assert cam.distortion_model == "none" and not cam.is_distorted
     assert seq.calibration.depth_scale == 1000.0
     np.testing.assert_allclose(seq.frame(0).depth, 5.0)
@@ -246,14 +248,40 @@ def test_missing_list(tum_dir: Path, name: str) -> None:
         ("rgb.txt", 5, "100.033000 rgb/100.033000.png", r"rgb.txt:5: timestamp .* repeats"),
         ("depth.txt", 5, "99.0 depth/100.067000.png", r"depth.txt:5: timestamp .* goes back in time"),
         ("rgb.txt", 6, "100.099000 rgb/missing.png", r"rgb.txt:6: listed file .*missing.png does not exist"),
-        ("groundtruth.txt", 4, "100.01 0 0 0 0 0 0", r"groundtruth.txt:4: expected 8 columns, found 7"),
-        ("groundtruth.txt", 5, "100.02 x 0 0 0 0 0 1", r"groundtruth.txt:5: column 2 is not a number"),
     ],
 )
 def test_bad_tables_fail_at_open_with_file_and_line(tum_dir: Path, file: str, line: int, text: str, message: str) -> None:
     _replace_line(tum_dir / file, line, text)
     with pytest.raises(DatasetError, match=message):
         TumRgbdSequence(tum_dir)
+
+
+@pytest.mark.parametrize(
+    "line, text, message",
+    [
+        (4, "100.01 0 0 0 0 0 0", r"groundtruth.txt:4: expected 8 columns, found 7"),
+        (5, "100.02 x 0 0 0 0 0 1", r"groundtruth.txt:5: column 2 is not a number"),
+        (5, "100.02 0 0 0 nan 0 0 1", r"groundtruth.txt:5: column 5 is not finite"),
+        (5, "100.02 0 0 0 0 0 0 0", r"groundtruth.txt:5: quaternion \(columns 5-8\) has norm 0, expected unit"),
+        (5, "100.02 0 0 0 0 0 0 5.2", r"groundtruth.txt:5: quaternion .* has norm 5.2,"),
+        (5, "100.02 0 0 0 0 0 0 1.002", r"groundtruth.txt:5: quaternion .* has norm 1.002,"),
+    ],
+)
+def test_bad_groundtruth_is_raised_by_groundtruth_not_at_open(tum_dir: Path, line: int, text: str, message: str) -> None:
+    """SLAM does not need the ground truth: a run writes its trajectory, then reports the file's problem."""
+    _replace_line(tum_dir / "groundtruth.txt", line, text)
+    seq = TumRgbdSequence(tum_dir)
+    assert seq.frame(0).T_world_cam is None
+    with pytest.raises(DatasetError, match=message):
+        seq.groundtruth()
+
+
+def test_rgb_image_of_another_size_is_blamed_not_its_depth(tum_dir: Path, caplog) -> None:
+    cv2.imwrite(str(tum_dir / "rgb" / "100.033000.png"), np.zeros((240, 320, 3), np.uint8))
+    frames = list(TumRgbdSequence(tum_dir))
+    assert [f.index for f in frames] == [0, 2, 3, 4]
+    assert "rgb/100.033000.png: image is 320x240, the camera's is 640x480; frame skipped" in caplog.text
+    assert "depth" not in caplog.text
 
 
 def test_empty_rgb_list(tum_dir: Path) -> None:

@@ -27,7 +27,7 @@ from typing import cast
 import cv2
 import numpy as np
 
-from vslam.data.textio import check_increasing, read_numeric, read_rows, require_dir, require_file
+from vslam.data.textio import check_increasing, check_rotations, read_numeric, read_rows, require_dir, require_file
 from vslam.data.trajectory import Trajectory
 from vslam.data.types import Calibration, Frame, PinholeCamera, SensorKind, Sequence
 from vslam.errors import DatasetError
@@ -159,15 +159,25 @@ class KittiSequence(Sequence):
         self._masks = self._image_list(seq_dir, f"mask_{left_id}", times_path, t_lines, "") if (seq_dir / f"mask_{left_id}").is_dir() else None
 
         self._gt: Trajectory | None = None
+        # A ground-truth problem is raised by groundtruth(), after a run has written its trajectory: it must
+        # not stop SLAM, which does not need the ground truth.
+        self._gt_error: DatasetError | None = None
         if poses_path is not None:
-            _, v = read_numeric(poses_path, 12)
-            if len(v) < len(self._t):
-                raise DatasetError(poses_path, f"has {len(v)} poses for {len(self._t)} frames in {times_path}")
-            if len(v) > len(self._t):
-                logger.info("%s: %d poses for %d frames; using the first %d", poses_path, len(v), len(self._t), len(self._t))
-            T_world_k0 = np.tile(np.eye(4), (len(self._t), 1, 1))
-            T_world_k0[:, :3, :4] = v[: len(self._t)].reshape(-1, 3, 4)
-            self._gt = Trajectory(self._t, T_world_k0 @ self._T_k0_cam0)
+            try:
+                self._gt = self._read_poses(poses_path, times_path)
+            except DatasetError as e:
+                self._gt_error = e
+
+    def _read_poses(self, poses_path: Path, times_path: Path) -> Trajectory:
+        lines, v = read_numeric(poses_path, 12)
+        if len(v) < len(self._t):
+            raise DatasetError(poses_path, f"has {len(v)} poses for {len(self._t)} frames in {times_path}")
+        if len(v) > len(self._t):
+            logger.info("%s: %d poses for %d frames; using the first %d", poses_path, len(v), len(self._t), len(self._t))
+        T_world_k0 = np.tile(np.eye(4), (len(self._t), 1, 1))
+        T_world_k0[:, :3, :4] = v[: len(self._t)].reshape(-1, 3, 4)
+        check_rotations(poses_path, T_world_k0[:, :3, :3], lines)
+        return Trajectory(self._t, T_world_k0 @ self._T_k0_cam0)
 
     def _image_list(self, seq_dir: Path, cam_id: int | str, times_path: Path, t_lines: np.ndarray, why: str) -> list[Path]:
         """image_<cam_id>/NNNNNN.png (or the folder ``cam_id`` names) for every line of times.txt; the counts must agree."""
@@ -207,7 +217,10 @@ class KittiSequence(Sequence):
         return self._t.copy()
 
     def groundtruth(self) -> Trajectory | None:
-        """T_world_cam of the left camera read, one pose per frame (None without poses/NN.txt)."""
+        """T_world_cam of the left camera read, one pose per frame (None without poses/NN.txt); DatasetError
+        when the poses file is malformed."""
+        if self._gt_error is not None:
+            raise self._gt_error
         return self._gt
 
     # -- extras ------------------------------------------------------------------------

@@ -97,6 +97,36 @@ def check_increasing(path: Path, t: np.ndarray, lines: np.ndarray, *, strict: bo
         raise DatasetError(path, f"timestamp {float(t[k])!r} {kind} (previous {float(t[k - 1])!r}); timestamps must increase", int(lines[k]))
 
 
+QUATERNION_TOLERANCE = 1e-3  # | |q| - 1 | allowed: files print 4-9 decimals; a larger error is not rounding
+
+
+def check_unit_quaternions(path: Path, q: np.ndarray, lines: np.ndarray, first_col: int) -> None:
+    """Raise at the first quaternion (rows of ``q``, any component order) that is not unit length: a zero or
+    scaled quaternion is a broken line, and normalising it silently would turn it into some other rotation."""
+    if len(q) == 0:
+        return
+    norm = np.linalg.norm(q, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > QUATERNION_TOLERANCE)
+    if len(bad):
+        k = int(bad[0])
+        cols = f"columns {first_col}-{first_col + 3}"
+        raise DatasetError(path, f"quaternion ({cols}) has norm {norm[k]:.6g}, expected unit length "
+                                 f"(within {QUATERNION_TOLERANCE:g})", int(lines[k]))
+
+
+def check_rotations(path: Path, R: np.ndarray, lines: np.ndarray, tol: float = 1e-2) -> None:
+    """Raise at the first 3x3 block that is not a rotation (R^T R = I, det +1, to ``tol``): KITTI-style pose
+    files print ~6 significant digits, so a real rotation is orthonormal to ~1e-6."""
+    if len(R) == 0:
+        return
+    err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
+    bad = np.flatnonzero((err > tol) | (np.linalg.det(R) < 0))
+    if len(bad):
+        k = int(bad[0])
+        raise DatasetError(path, f"pose's 3x3 part is not a rotation (|R^T R - I| = {err[k]:.3g}, det "
+                                 f"{np.linalg.det(R[k]):.3g})", int(lines[k]))
+
+
 def read_yaml_mapping(path: Path) -> tuple[dict[str, Any], dict[str, int]]:
     """A YAML file's top-level mapping and the 1-based line of each key.
 

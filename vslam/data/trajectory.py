@@ -13,7 +13,7 @@ from typing import Literal, TextIO
 
 import numpy as np
 
-from vslam.data.textio import check_increasing, read_numeric, require_file
+from vslam.data.textio import check_increasing, check_rotations, check_unit_quaternions, read_numeric, require_file
 from vslam.errors import DatasetError
 from vslam.geometry.se3 import R_to_quat_wxyz, quat_wxyz_to_R
 
@@ -88,6 +88,7 @@ def read_trajectory(path: str | Path, fmt: str = "auto", times: str | Path | Non
     fmt = guess_format(path) if fmt == "auto" else fmt
     if fmt == "tum":
         lines, v = read_numeric(path, 8)
+        check_unit_quaternions(path, v[:, 4:8], lines, first_col=5)
         t = v[:, 0]
         R = quat_wxyz_to_R(v[:, [7, 4, 5, 6]]) if len(v) else np.zeros((0, 3, 3))
         poses = _poses(R, v[:, 1:4])
@@ -95,6 +96,7 @@ def read_trajectory(path: str | Path, fmt: str = "auto", times: str | Path | Non
         lines, v = read_numeric(path, 12)
         poses = np.tile(np.eye(4), (len(v), 1, 1))
         poses[:, :3, :4] = v.reshape(-1, 3, 4)
+        check_rotations(path, poses[:, :3, :3], lines)
         if times is not None:
             tl, tv = read_numeric(Path(times), 1)
             if len(tv) < len(v):
@@ -105,6 +107,7 @@ def read_trajectory(path: str | Path, fmt: str = "auto", times: str | Path | Non
     elif fmt == "euroc":
         lines, v = read_numeric(path, (8, 64), delimiter=",")
         t = v[:, 0] * 1e-9  # the ASL format stores nanoseconds
+        check_unit_quaternions(path, v[:, 4:8], lines, first_col=5)
         R = quat_wxyz_to_R(v[:, 4:8]) if len(v) else np.zeros((0, 3, 3))
         poses = _poses(R, v[:, 1:4])
     else:
@@ -138,9 +141,11 @@ def format_pose(t: float, T: np.ndarray, fmt: str) -> str:
 
 
 def write_trajectory(path: str | Path, traj: Trajectory, fmt: str = "tum") -> Path:
+    """The whole trajectory at once, through a temporary file: complete or absent, never cut."""
+    from vslam.outputs import atomic_path
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with TrajectoryWriter(path, fmt) as w:
+    with atomic_path(path) as tmp, TrajectoryWriter(tmp, fmt) as w:
         for t, T in zip(traj.timestamps, traj.poses):
             w.write(float(t), T)
     return path

@@ -168,6 +168,11 @@ class TumRgbdSequence(Sequence):
         if sensor == "rgbd":
             t_depth, depth_files = read_file_list(root / "depth.txt", root, "depth.txt")
             ia, ib = associate(t_rgb, t_depth, self.max_diff)
+            if len(ia) == 0:
+                span = f"depth {t_depth[0]:.3f}-{t_depth[-1]:.3f} s" if len(t_depth) else "no depth images"
+                raise DatasetError(root / "depth.txt", f"no rgb image has a depth image within {self.max_diff:g} s "
+                                   f"(rgb {t_rgb[0]:.3f}-{t_rgb[-1]:.3f} s, {span}); check the two lists' "
+                                   "timestamps, or run with --sensor mono")
             if len(ia) < len(t_rgb):
                 logger.info("%s: %d of %d rgb images have a depth image within %.3f s; the others get depth=None",
                             root, len(ia), len(t_rgb), max_diff)
@@ -182,7 +187,14 @@ class TumRgbdSequence(Sequence):
         self.calibration = self._read_calibration(root)
 
         gt_path = root / "groundtruth.txt"
-        self._gt = read_trajectory(gt_path, "tum") if gt_path.is_file() else None
+        # A ground-truth problem is raised by groundtruth(), after a run has written its trajectory: it must
+        # not stop SLAM, which does not need the ground truth.
+        self._gt: Trajectory | None = None
+        self._gt_error: DatasetError | None = None
+        try:
+            self._gt = read_trajectory(gt_path, "tum") if gt_path.is_file() else None
+        except DatasetError as e:
+            self._gt_error = e
         self._gt_idx = self._gt.nearest(self._t, self.max_diff) if self._gt is not None else np.full(len(self._t), -1)
         self._accel = self._read_accelerometer(root / "accelerometer.txt")
         self._masks = self._read_masks(root)
@@ -238,7 +250,10 @@ class TumRgbdSequence(Sequence):
         return self._t.copy()
 
     def groundtruth(self) -> Trajectory | None:
-        """groundtruth.txt at its native rate (100 Hz mocap), T_world_cam of the colour camera."""
+        """groundtruth.txt at its native rate (100 Hz mocap), T_world_cam of the colour camera; DatasetError
+        when the file is malformed."""
+        if self._gt_error is not None:
+            raise self._gt_error
         return self._gt
 
     # -- extras ------------------------------------------------------------------------
@@ -263,6 +278,10 @@ class TumRgbdSequence(Sequence):
         image = cv2.imread(str(self._rgb[i]), cv2.IMREAD_COLOR)
         if image is None:
             _warn_skip(self._rgb[i], "image does not decode")
+            return None
+        cam = self.calibration.cam0
+        if image.shape[:2] != (cam.height, cam.width):
+            _warn_skip(self._rgb[i], f"image is {image.shape[1]}x{image.shape[0]}, the camera's is {cam.width}x{cam.height}")
             return None
         depth = None
         depth_path = self._depth[i] if self._depth is not None else None

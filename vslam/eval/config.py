@@ -28,6 +28,7 @@ class EvalConfig:
     kitti_lengths: metres; segment lengths of the KITTI odometry metric.
     kitti_step: frames between segment start frames (10 = 1 s at KITTI's 10 Hz).
     plots: whether ``write_report`` draws PNGs.
+    enabled: ``vslam run`` reads and evaluates the sequence's ground truth (``--no-eval``: off).
     """
 
     align: Align = "auto"
@@ -36,6 +37,7 @@ class EvalConfig:
     kitti_lengths: tuple[float, ...] = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
     kitti_step: int = 10
     plots: bool = True
+    enabled: bool = True
 
     def __post_init__(self) -> None:
         if self.align not in ALIGNS:

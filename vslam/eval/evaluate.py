@@ -122,7 +122,8 @@ def evaluate_files(
         untimed, other = (est_path, gt_fmt) if est_untimed else (gt_path, est_fmt)
         raise EvalError(
             f"{untimed.name} is a KITTI pose file without timestamps and the other file is {other}; "
-            "give its times file to match by time"
+            "give its times file to match by time (vslam eval --times FILE for the estimate, --gt-times FILE "
+            "for the ground truth)"
         )
     # Two KITTI files where only one has times: match by line, use those times as the time axis.
     seconds = not (est_untimed and gt_untimed)

@@ -15,6 +15,7 @@ from pathlib import Path
 from vslam.eval import plots
 from vslam.eval.metrics import ErrorStats
 from vslam.eval.result import EvalResult
+from vslam.outputs import write_bytes, write_text
 
 logger = logging.getLogger(__name__)
 
@@ -49,7 +50,7 @@ def write_report(result: EvalResult, out_dir: str | Path, title: str = "Trajecto
     files: dict[str, Path] = {}
 
     files["metrics"] = out / "metrics.json"
-    files["metrics"].write_text(json.dumps(result.to_dict(), indent=2) + "\n")
+    write_text(files["metrics"], json.dumps(result.to_dict(), indent=2) + "\n")
 
     images: dict[str, bytes] = {}
     if result.config.plots and result.arrays is not None:
@@ -57,13 +58,13 @@ def write_report(result: EvalResult, out_dir: str | Path, title: str = "Trajecto
         for key, name, _ in PLOTS:
             if key in images:
                 files[key] = out / name
-                files[key].write_bytes(images[key])
+                write_bytes(files[key], images[key])
 
     tables = report_tables(result)
     files["report_md"] = out / "report.md"
-    files["report_md"].write_text(_markdown(result, title, tables, [k for k, _, _ in PLOTS if k in images]))
+    write_text(files["report_md"], _markdown(result, title, tables, [k for k, _, _ in PLOTS if k in images]))
     files["report_html"] = out / "report.html"
-    files["report_html"].write_text(_html(result, title, tables, images))
+    write_text(files["report_html"], _html(result, title, tables, images))
     logger.info("wrote evaluation report to %s", out)
     return files
 

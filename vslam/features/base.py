@@ -13,6 +13,7 @@ from typing import Literal, Protocol
 import numpy as np
 
 from vslam.data.types import PinholeCamera
+from vslam.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -54,6 +55,13 @@ class FeatureConfig:
     # 2026-12-03): TUM teddy 0.0042 -> 0.0043 m, KITTI 07 mono 0.306 -> 0.319 m, 2-loop lighting room 0.040 ->
     # 0.029 m, the learned pipeline on the TUM walkers composite 0.0188 -> 0.0175 m at 244.8 -> 202.6 ms/frame.
     int8: bool = True
+
+    def __post_init__(self) -> None:
+        if self.n_features < 1:
+            raise ConfigError(f"slam.features.n_features must be at least 1, got {self.n_features}")
+        if self.n_levels < 1 or not self.scale_factor > 1.0:
+            raise ConfigError(f"slam.features: n_levels must be >= 1 and scale_factor > 1, got {self.n_levels}, "
+                              f"{self.scale_factor}")
 
 
 @dataclass

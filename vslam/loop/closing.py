@@ -280,8 +280,9 @@ class LoopCloser:
         database size and memory -- the false-loop count of a run without loops is ``verified``."""
         d = dataclasses.asdict(self.stats)
         d.update(keyframes_in_database=len(self.db), database_bytes=self.db.memory_bytes(), descriptor=self.cfg.descriptor)
-        path.write_text(json.dumps(d, indent=1))
-        return path
+        from vslam.outputs import write_text
+
+        return write_text(path, json.dumps(d, indent=1))
 
     # -- final trajectory ---------------------------------------------------------------
     # -- relocalisation ---------------------------------------------------------------
@@ -301,25 +302,28 @@ class LoopCloser:
 
 def attach_saved_map(slam, path: str) -> None:
     """Load a saved map into a freshly built ``SlamTracker`` (map, tracker, mapper, loop closer, database)."""
-    from vslam.loop.mapio import load_map
+    from vslam.loop.mapio import MapFileError, check_sensor, load_map, sensor_header
 
     loaded = load_map(path)
+    check_sensor(path, loaded.header, sensor_header(slam.sensor, slam.cam, slam.cfg.features.extractor))
     slam.map = slam.tracker.map = slam.mapper.map = slam.loop.map = slam.frames.map = loaded.map
     if slam.lines is not None:  # map files hold points only: the line map starts empty on the loaded keyframes
         slam.lines.map = loaded.map
     if loaded.database.dim != slam.loop.db.dim:
-        raise ValueError(f"{path}: place descriptors of dimension {loaded.database.dim}, this config uses {slam.loop.db.dim}")
+        raise MapFileError(f"{path}: place descriptors of dimension {loaded.database.dim}, this config uses "
+                           f"{slam.loop.db.dim} (slam.loop.descriptor)")
     slam.loop.db = loaded.database
     log.info("loaded map %s: %s", path, loaded.map.stats())
 
 
 def save_slam_map(slam, path) -> Path:
     """Write a ``SlamTracker``'s map with the place descriptor of every keyframe (computed if missing)."""
-    from vslam.loop.mapio import save_map
+    from vslam.loop.mapio import save_map, sensor_header
 
     desc = slam.loop.descriptor if slam.loop is not None else make_place_descriptor(slam.cfg.loop.descriptor, slam.cfg.loop.vocabulary, slam.cfg.loop.weights)
     db = slam.loop.db if slam.loop is not None else KeyframeDatabase(desc.dim)
     for kf in slam.map.keyframes.values():
         if kf.id not in db:
             db.add(kf.id, desc.describe(None, kf.features))
-    return save_map(path, slam.map, db, slam.cfg.loop.descriptor)
+    return save_map(path, slam.map, db, slam.cfg.loop.descriptor,
+                    sensor=sensor_header(slam.sensor, slam.cam, slam.cfg.features.extractor))

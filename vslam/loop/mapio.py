@@ -39,8 +39,12 @@ class LoadedMap:
     header: dict
 
 
-def save_map(path: str | Path, m: Map, database: KeyframeDatabase, descriptor_kind: str = "bow") -> Path:
-    """Write ``m`` and the place descriptors of its keyframes (every keyframe must be in ``database``)."""
+def save_map(path: str | Path, m: Map, database: KeyframeDatabase, descriptor_kind: str = "bow",
+             sensor: dict | None = None) -> Path:
+    """Write ``m`` and the place descriptors of its keyframes (every keyframe must be in ``database``).
+
+    ``sensor``: what made the map (``sensor_header``), so that a run with another camera, sensor or keypoint
+    type refuses it instead of tracking nothing against it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     kfs = list(m.keyframes.values())
@@ -58,7 +62,7 @@ def save_map(path: str | Path, m: Map, database: KeyframeDatabase, descriptor_ki
     pts = list(m.points.values())
     header = {"format": FORMAT, "version": FORMAT_VERSION, "keyframes": len(kfs), "points": len(pts),
               "descriptor": descriptor_kind, "descriptor_dim": database.dim,
-              "next_kf": m._next_kf, "next_pt": m._next_pt}
+              "next_kf": m._next_kf, "next_pt": m._next_pt, **({"sensor": sensor} if sensor else {})}
     arrays = {
         "header": np.frombuffer(json.dumps(header).encode(), np.uint8),
         "kf_id": np.array([k.id for k in kfs], np.int64),
@@ -82,9 +86,41 @@ def save_map(path: str | Path, m: Map, database: KeyframeDatabase, descriptor_ki
         "pt_first_kf": np.array([p.first_kf for p in pts], np.int64),
         "pt_visible": np.array([[p.n_visible, p.n_found] for p in pts], np.int64).reshape(-1, 2),
     }
-    with open(path, "wb") as f:
+    from vslam.outputs import atomic_open
+
+    with atomic_open(path, "wb") as f:
         np.savez_compressed(f, **arrays)
     return path
+
+
+def sensor_header(sensor: str, cam, extractor: str) -> dict:
+    """The map header's record of what made the map: sensor kind, keypoint extractor, intrinsics."""
+    return {"kind": sensor, "extractor": extractor, "width": int(cam.width), "height": int(cam.height),
+            "fx": float(cam.fx), "fy": float(cam.fy), "cx": float(cam.cx), "cy": float(cam.cy)}
+
+
+def check_sensor(path: str | Path, header: dict, want: dict, rel_tol: float = 0.005) -> None:
+    """MapFileError when the map was made by another camera (size, intrinsics beyond ``rel_tol``), by another
+    keypoint extractor (its descriptors cannot match), or monocularly (no metric scale) for a run with depth.
+    A map file written before the header held the sensor is accepted with a warning."""
+    have = header.get("sensor")
+    if not isinstance(have, dict):
+        import logging
+
+        logging.getLogger(__name__).warning("%s: the map file does not say which camera made it; it is assumed "
+                                            "to be this run's", path)
+        return
+    where = f"{path}: map made"
+    if have.get("extractor") != want["extractor"]:
+        raise MapFileError(f"{where} with {have.get('extractor')!r} keypoints, this run uses {want['extractor']!r} "
+                           "(slam.features.extractor)")
+    if (have.get("kind") == "mono") != (want["kind"] == "mono"):
+        raise MapFileError(f"{where} by a {have.get('kind')} sensor, this run is {want['kind']}: a monocular map has "
+                           "no metric scale")
+    for k in ("width", "height", "fx", "fy", "cx", "cy"):
+        a, b = float(have.get(k, float("nan"))), float(want[k])
+        if not abs(a - b) <= rel_tol * max(abs(b), 1.0):
+            raise MapFileError(f"{where} by another camera: {k} {a:g}, this run's camera {b:g}")
 
 
 def load_map(path: str | Path) -> LoadedMap:

@@ -22,6 +22,7 @@ here so the point-only path is untouched when it is off:
 
 from __future__ import annotations
 
+import errno
 import logging
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -471,16 +472,19 @@ class LineSlam:
         """Map lines as a PLY line set (open3d imported here only)."""
         import open3d as o3d
 
+        from vslam.outputs import atomic_path, write_text
+
         ends = np.array([ml.ends for ml in self.lmap.lines.values()], dtype=np.float64).reshape(-1, 3)
         if len(ends) == 0:  # open3d refuses an empty line set; the file still exists, with no elements
-            Path(path).write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty double x\nproperty double y\n"
+            write_text(path, "ply\nformat ascii 1.0\nelement vertex 0\nproperty double x\nproperty double y\n"
                                   "property double z\nelement edge 0\nproperty int vertex1\nproperty int vertex2\nend_header\n")
             return path
         ls = o3d.geometry.LineSet()
         ls.points = o3d.utility.Vector3dVector(ends)
         ls.lines = o3d.utility.Vector2iVector(np.arange(len(ends)).reshape(-1, 2))
-        if not o3d.io.write_line_set(str(path), ls):
-            raise OSError(f"{path}: could not write the line map")
+        with atomic_path(path) as tmp:
+            if not o3d.io.write_line_set(str(tmp), ls):
+                raise OSError(errno.EIO, "could not write the line map (open3d)", str(path))
         return path
 
     def stats(self) -> dict[str, int]:

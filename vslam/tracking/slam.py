@@ -10,6 +10,7 @@ follows it) a fixed number of frames later, never after the next keyframe.
 
 from __future__ import annotations
 
+import errno
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -540,13 +541,15 @@ def write_map_ply(path: Path, xyz: np.ndarray) -> Path:
     """(N,3) world points -> PLY point cloud (open3d imported here only: it is heavy and optional)."""
     import open3d as o3d
 
+    from vslam.outputs import atomic_path, write_text
+
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     if len(xyz) == 0:  # open3d refuses an empty cloud (a monocular run that never initialised); the file still exists
-        Path(path).write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty double x\nproperty double y\n"
-                              "property double z\nend_header\n")
-        return path
+        return write_text(path, "ply\nformat ascii 1.0\nelement vertex 0\nproperty double x\nproperty double y\n"
+                                "property double z\nend_header\n")
     pcd = o3d.geometry.PointCloud()
     pcd.points = o3d.utility.Vector3dVector(xyz)
-    if not o3d.io.write_point_cloud(str(path), pcd):
-        raise OSError(f"{path}: could not write the map")
+    with atomic_path(path) as tmp:
+        if not o3d.io.write_point_cloud(str(tmp), pcd):
+            raise OSError(errno.EIO, "could not write the map (open3d)", str(path))
     return path
