@@ -1,14 +1,90 @@
-"""Weights files of the networks trained here (ConvPoint, VLADNet): one ``torch.save`` dict of ``config``
-(what rebuilds the network), ``state_dict`` and ``meta`` (the training's numbers). Read from local files only;
-a missing, damaged or foreign file is one line naming it, not torch's traceback. Only torch is imported, so the
-GPU machine (no gtsam / pycolmap) can train and load them."""
+"""Checkpoints of the networks trained here, read safely.
+
+``read_checkpoint`` is the one place a torch file is opened: ``torch.load(weights_only=True)`` only, so a
+weights path from a config or a ``last.pt`` found in an output folder can never run code (a pickle may name
+any callable; the weights-only unpickler accepts tensors and plain containers and refuses the rest). A file that
+cannot be read that way, or is a checkpoint of another kind, is one ``ConfigError`` line naming the file and
+what was expected; there is no fallback to the full unpickler. ``reading`` gives the same one line for errors
+while the loaded dict is applied (a state dict of another architecture).
+
+Weights files of ConvPoint and VLADNet (``save_weights`` / ``load_weights``) are one ``torch.save`` dict of
+``config`` (what rebuilds the network), ``state_dict`` and ``meta`` (the training's numbers). Only torch is
+imported, so the GPU machine (no gtsam / pycolmap) can train and load them.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import pickle
+import re
+import warnings
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator, Sequence
 
 import torch
+
+
+def _first(text: str, limit: int = 160) -> str:
+    """The first line of an exception text, cut at its first sentence when long (torch's run on for a paragraph)."""
+    line = text.strip().splitlines()[0] if text.strip() else ""
+    if len(line) > limit and ". " in line:
+        line = line[:line.index(". ")]
+    return line[:limit]
+
+
+def _reason(e: BaseException) -> str:
+    """Why torch could not read a file, in a few words. The weights-only unpickler wraps its own error (which
+    names the refused global) in a page of advice that ends in 'use weights_only=False': keep only the former."""
+    inner = e.__context__
+    if isinstance(e, pickle.UnpicklingError) and isinstance(inner, pickle.UnpicklingError):
+        m = re.search(r"GLOBAL (\S+)", str(inner))
+        if m:
+            return f"it holds Python objects ({m.group(1)}) that are never unpickled: that could run code"
+        return f"not a torch.save file of tensors and plain types: {_first(str(inner))}"
+    if isinstance(e, EOFError):
+        return "empty or truncated file"
+    return f"{type(e).__name__}: {_first(str(e))}" if str(e) else type(e).__name__
+
+
+def _message(path: Path, what: str, reason: str, note: str) -> str:
+    return f"{path}: not a {what} ({reason})" + (f"; {note}" if note else "")
+
+
+@contextlib.contextmanager
+def reading(path: str | Path, what: str, note: str = "") -> Iterator[None]:
+    """Errors inside (other than VslamErrors, already one line) -> ``ConfigError("<path>: not a <what> (<why>)")``
+    with ``; <note>`` appended when given (e.g. "resume refused")."""
+    from vslam.errors import ConfigError, VslamError
+
+    try:
+        yield
+    except VslamError:
+        raise
+    except Exception as e:
+        raise ConfigError(_message(Path(path), what, _reason(e), note)) from None
+
+
+def read_checkpoint(path: str | Path, what: str, keys: Sequence[str] = (), map_location: str | torch.device = "cpu",
+                    note: str = "") -> dict:
+    """The dict ``torch.save``d at ``path``, loaded weights-only. ``what`` names the expected kind ("detector
+    checkpoint"), ``keys`` the entries it must have; either failing, or the file missing, damaged or holding
+    other objects than tensors and plain types, is one ``ConfigError`` line naming the file."""
+    from vslam.errors import ConfigError
+
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"{p}: {what} not found" + (f"; {note}" if note else ""))
+    with reading(p, what, note), warnings.catch_warnings():
+        # a bare pickle of a newer protocol draws a multi-line warning from torch before it is refused
+        warnings.filterwarnings("ignore", message="Detected pickle protocol", category=UserWarning)
+        ck = torch.load(p, map_location=map_location, weights_only=True)
+    if not isinstance(ck, dict):
+        raise ConfigError(_message(p, what, f"a {type(ck).__name__}, not a dict", note))
+    missing = [k for k in keys if k not in ck]
+    if missing:
+        has = ", ".join(str(k) for k in list(ck)[:8]) or "nothing"
+        raise ConfigError(_message(p, what, f"no {', '.join(missing)}; it holds {has}", note))
+    return ck
 
 
 def save_weights(model: torch.nn.Module, config: dict, path: str | Path, meta: dict | None = None) -> Path:
@@ -26,10 +102,9 @@ def load_weights(path: str | Path, name: str, command: str, build: Callable[[dic
     p = Path(path)
     if not p.exists():
         raise ConfigError(f"{p}: {name} weights not found (train them with `{command}`)")
-    try:
-        ck = torch.load(p, map_location="cpu", weights_only=True)
+    what = f"{name} checkpoint"
+    ck = read_checkpoint(p, what, ("config", "state_dict"))
+    with reading(p, what):
         model = build(ck["config"])
         model.load_state_dict(ck["state_dict"])
-    except Exception as e:  # a damaged or foreign file
-        raise ConfigError(f"{p}: not a {name} checkpoint ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
     return model.eval()

@@ -110,11 +110,16 @@ def default_weights() -> Path:
 
 def load_model(path: str | Path, field: str = "slam.dynamic.weights") -> tuple[YoloDetector, dict]:
     """``field``: the config field that named ``path``, for the error when it is missing."""
+    from vslam.checkpoint import read_checkpoint, reading
+
     if not Path(path).is_file():
         raise ConfigError(f"{path}: detector weights not found ({field})")
-    ckpt = torch.load(Path(path), map_location="cpu", weights_only=True)  # weights only: a config path never runs code
-    model = YoloDetector(DetectorConfig(**ckpt["config"]))
-    model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in ckpt["model"].items()})
+    what = "detector checkpoint"
+    ckpt = read_checkpoint(path, what, ("model", "config", "names"))  # weights only: a config path never runs code
+    with reading(path, what):  # another architecture's state dict, a config of other fields
+        model = YoloDetector(DetectorConfig(**ckpt["config"]))
+        model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in ckpt["model"].items()})
+        ckpt["names"] = [str(n) for n in ckpt["names"]]
     return model, ckpt
 
 

@@ -294,6 +294,21 @@ def _recipe(d: dict) -> dict:
             if k not in ("resume", "threads", "workers", "device", "ckpt_every", "log_every", "weights", "evaluate")}
 
 
+def _resume(last: Path, cfg: TrainConfig, model: YoloDetector, opt: torch.optim.Optimizer, dev: torch.device) -> int:
+    """Model and optimiser state from ``last`` (read weights-only: a file planted in the output folder never runs
+    code) -> the iteration to continue from."""
+    from vslam.checkpoint import read_checkpoint, reading
+
+    what, note = "detector training checkpoint", "resume refused"
+    ck = read_checkpoint(last, what, ("model", "optimizer", "iteration", "train"), map_location=dev, note=note)
+    with reading(last, what, note):
+        if _recipe(dict(ck["train"])) != _recipe(asdict(cfg)):
+            raise ConfigError(f"{last}: was trained with a different config; resume needs the same one")
+        model.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["optimizer"])
+        return int(ck["iteration"])
+
+
 def _lr(cfg: TrainConfig, it: int) -> float:
     if it < cfg.warmup:
         return cfg.lr * (it + 1) / cfg.warmup
@@ -344,12 +359,7 @@ def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     start = 0
     if cfg.resume and (out / "last.pt").is_file():
-        ck = torch.load(out / "last.pt", map_location=dev, weights_only=False)
-        if _recipe(ck["train"]) != _recipe(asdict(cfg)):
-            raise ConfigError(f"{out / 'last.pt'}: was trained with a different config; resume needs the same one")
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        start = int(ck["iteration"])
+        start = _resume(out / "last.pt", cfg, model, opt, dev)
         log.info("resumed at iteration %d", start)
     train_set, val_sets = training_data(cfg), held_out_sets(cfg) if cfg.evaluate else {}
     log.info("training samples: %d (+ %d backgrounds x %d people cutouts); held-out: %s", len(train_set.samples),

@@ -319,10 +319,30 @@ def _optim(model, lr, wd, steps):
     return opt, sched
 
 
+RESUME_WHAT = "keypoint training checkpoint"
+
+
+def _resume(last: Path, model, dev) -> dict:
+    """``last``'s dict with its model state applied (read weights-only: a file planted in the output folder never
+    runs code). Optimiser, schedule and RNG states are applied by the stage they belong to."""
+    from vslam.checkpoint import read_checkpoint, reading
+
+    keys = ("model", "opt", "sched", "rng", "torch_rng", "stage", "step", "history")
+    ck = read_checkpoint(last, RESUME_WHAT, keys, map_location=dev, note="resume refused")
+    with reading(last, RESUME_WHAT, "resume refused"):
+        if ck["stage"] not in ("shapes", "adapt", "joint"):
+            raise ValueError(f"unknown stage {ck['stage']!r}")
+        model.load_state_dict(ck["model"])
+        ck["step"] = int(ck["step"])
+        ck["history"] = {str(k): [float(x) for x in v] for k, v in dict(ck["history"]).items()}
+    return ck
+
+
 def _train(cfg: KeypointTrainConfig, dev, rank: int, n_ranks: int) -> dict:
     import torch
 
     from vslam import ddp
+    from vslam.checkpoint import reading
     from vslam.features.convpoint import ConvPointConfig, ConvPointNet, batch_tensor, save_convpoint
     from vslam.features.shapes import render_shapes
     from vslam.paths import data_root
@@ -345,9 +365,8 @@ def _train(cfg: KeypointTrainConfig, dev, rank: int, n_ranks: int) -> dict:
         model.load_state_dict(start.state_dict())
     amp = torch.autocast("cuda", dtype=torch.bfloat16) if dev.type == "cuda" else torch.autocast("cpu", enabled=False)
     state = {"stage": "adapt" if cfg.init else "shapes", "step": 0, "history": {"shapes": [], "joint_det": [], "joint_desc": []}}
-    ck = torch.load(last, map_location=dev, weights_only=False) if cfg.resume and last.exists() else None
+    ck = _resume(last, model, dev) if cfg.resume and last.exists() else None
     if ck is not None:
-        model.load_state_dict(ck["model"])
         state = {k: ck[k] for k in ("stage", "step", "history")}
         log.info("resumed %s at step %d", state["stage"], state["step"])
     t_start = time.perf_counter()
@@ -363,10 +382,11 @@ def _train(cfg: KeypointTrainConfig, dev, rank: int, n_ranks: int) -> dict:
         opt, sched = _optim(model, lr, cfg.weight_decay, steps)
         rng = np.random.default_rng([cfg.seed, rank, {"shapes": 1, "joint": 3}[name]])
         if ck is not None and ck["stage"] == name:
-            opt.load_state_dict(ck["opt"])
-            sched.load_state_dict(ck["sched"])
-            rng.bit_generator.state = ck["rng"]
-            torch.set_rng_state(ck["torch_rng"])
+            with reading(last, RESUME_WHAT, "resume refused"):
+                opt.load_state_dict(ck["opt"])
+                sched.load_state_dict(ck["sched"])
+                rng.bit_generator.state = ck["rng"]
+                torch.set_rng_state(ck["torch_rng"].cpu())
         t0 = time.perf_counter()
         model.train()
         while state["step"] < steps:

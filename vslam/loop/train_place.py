@@ -226,6 +226,27 @@ def train(cfg: PlaceTrainConfig) -> dict:
     return ddp.launch(dev, functools.partial(_train, cfg))
 
 
+def _resume(last: Path, model, opt, sched, rng: np.random.Generator, dev) -> tuple[int, list[float]]:
+    """Model, optimiser, schedule and RNG states from ``last`` (read weights-only: a file planted in the output
+    folder never runs code) -> (step, loss history)."""
+    import torch
+
+    from vslam.checkpoint import read_checkpoint, reading
+
+    what, note = "place training checkpoint", "resume refused"
+    keys = ("model", "opt", "sched", "step", "history", "rng", "torch_rng")
+    ck = read_checkpoint(last, what, keys, map_location=dev, note=note)
+    with reading(last, what, note):
+        if "stage" in ck:  # a keypoint trainer's last.pt holds the same keys and one more
+            raise ValueError("a keypoint training checkpoint")
+        model.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["opt"])
+        sched.load_state_dict(ck["sched"])
+        rng.bit_generator.state = ck["rng"]
+        torch.set_rng_state(ck["torch_rng"].cpu())
+        return int(ck["step"]), [float(x) for x in ck["history"]]
+
+
 def _train(cfg: PlaceTrainConfig, dev, rank: int, n_ranks: int) -> dict:
     import torch
 
@@ -239,24 +260,19 @@ def _train(cfg: PlaceTrainConfig, dev, rank: int, n_ranks: int) -> dict:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     root = data_root()
-    t0 = time.perf_counter()
-    pools = _pools(cfg, root)
-    log.info("place pools: %s (%.1f s)", ", ".join(f"{p.name} {len(p.images)}" for p in pools), time.perf_counter() - t0)
     model = VladNet(VladNetConfig(tuple(cfg.channels), cfg.clusters, cfg.out_dim, tuple(cfg.input_size))).to(dev)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=cfg.steps, pct_start=max(0.05, 3 / cfg.steps))
     step, history = 0, []
     last = out / "last.pt"
-    if cfg.resume and last.exists():
-        ck = torch.load(last, map_location=dev, weights_only=False)
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["opt"])
-        sched.load_state_dict(ck["sched"])
-        step, history = int(ck["step"]), list(ck["history"])
-        rng.bit_generator.state = ck["rng"]
-        torch.set_rng_state(ck["torch_rng"])
+    resumed = cfg.resume and last.exists()
+    if resumed:  # before the pools are built: a file that cannot be resumed fails at once
+        step, history = _resume(last, model, opt, sched, rng, dev)
         log.info("resumed at step %d", step)
-    else:  # NetVLAD clusters from k-means on backbone features of random training images
+    t0 = time.perf_counter()
+    pools = _pools(cfg, root)  # numpy only, seeded by the config: the torch and numpy RNG streams are untouched
+    log.info("place pools: %s (%.1f s)", ", ".join(f"{p.name} {len(p.images)}" for p in pools), time.perf_counter() - t0)
+    if not resumed:  # NetVLAD clusters from k-means on backbone features of random training images
         gen = torch.Generator().manual_seed(cfg.seed)
         pick = [(p, int(rng.integers(len(p.images)))) for p in (pools[int(rng.integers(len(pools)))] for _ in range(cfg.kmeans_images))]
         with torch.no_grad():
