@@ -356,7 +356,7 @@ def test_place_training_resumes_to_the_same_weights(tmp_path, monkeypatch):
 
 
 def test_keypoint_training_resumes_to_the_same_weights(tmp_path, monkeypatch):
-    """The toy recipe killed in stage 1 (after step 30 of 60) and in stage 3 (after step 10 of 20), each resumed
+    """The toy recipe killed in stage 1 (after step 30 of 60) and in stage 3 (after step 10 of 40), each resumed
     from its ``last.pt``: the weights and loss history of the uninterrupted run."""
     from vslam.features.train_keypoints import KeypointTrainConfig, train
 

@@ -26,6 +26,7 @@ import numpy as np
 import yaml
 
 from vslam.config import from_dict, load_config, to_dict
+from vslam.data.select import kept_indices, select_frames
 from vslam.data.trajectory import Trajectory, TrajectoryWriter, write_trajectory
 from vslam.data.types import Frame, Sequence
 from vslam.errors import ConfigError, DatasetError, TrackingError, VslamError
@@ -47,7 +48,14 @@ class DatasetConfig:
     sensor: Literal["rgbd", "stereo", "mono"] = "rgbd"
     max_diff: float = 0.02  # seconds, image/depth/ground-truth association
     max_frames: int = 0  # 0 = all frames
+    # every stride-th frame, and frame-index ranges [first, last] cut out (a low frame rate, a camera that
+    # drops out: ``vslam.data.select``); max_frames counts the frames left
+    stride: int = 1
+    drop: tuple[tuple[int, int], ...] = ()
     synthetic: dict[str, Any] = field(default_factory=dict)  # SyntheticConfig fields when kind == synthetic
+
+    def __post_init__(self) -> None:
+        kept_indices(0, self.stride, self.drop)  # the same checks as when they are applied
 
 
 @dataclass(frozen=True)
@@ -269,6 +277,7 @@ class Pipeline:
     ) -> RunResult:
         cfg = self.config
         seq = sequence if sequence is not None else open_dataset(cfg.dataset)
+        seq = select_frames(seq, cfg.dataset.stride, cfg.dataset.drop)
         out = Path(out_dir or cfg.output.dir)
         prepare_run_dir(out, keep=(cfg.slam.load_map,))
         try:

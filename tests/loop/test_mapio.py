@@ -99,3 +99,22 @@ def test_saved_map_continues_with_lines_on(saved):
     out = np.array([st.track(f).T_world_cam for f in list(s)[15:]])  # past the saved frames: new keyframes
     assert len(st.map.keyframes) > len(st0.map.keyframes) and st.lines.stats()["lines"] > 0
     np.testing.assert_allclose(out[:25, :3, 3], poses[15:40, :3, 3], atol=0.03)
+
+
+def test_sensor_header_is_compared_on_load(tmp_path):
+    """A map made by another camera, keypoint type or (monocular) without scale is refused in one line."""
+    from vslam.data.types import PinholeCamera
+    from vslam.loop.mapio import MapFileError, check_sensor, sensor_header
+
+    cam = PinholeCamera(640, 480, 525.0, 525.0, 319.5, 239.5)
+    rgbd = sensor_header("rgbd", cam, "orb")
+    check_sensor("m.npz", {"sensor": rgbd}, rgbd)
+    check_sensor("m.npz", {"sensor": rgbd}, sensor_header("mono", cam, "orb"))  # a metric map serves mono
+    check_sensor("m.npz", {"sensor": rgbd}, sensor_header("rgbd", PinholeCamera(640, 480, 526.0, 525.0, 319.5, 239.5), "orb"))
+    with pytest.raises(MapFileError, match="m.npz: map made by another camera: fx 525, this run's camera 540"):
+        check_sensor("m.npz", {"sensor": rgbd}, sensor_header("rgbd", PinholeCamera(640, 480, 540.0, 525.0, 319.5, 239.5), "orb"))
+    with pytest.raises(MapFileError, match="monocularly has no metric scale; this run is stereo"):
+        check_sensor("m.npz", {"sensor": sensor_header("mono", cam, "orb")}, sensor_header("stereo", cam, "orb"))
+    with pytest.raises(MapFileError, match="with 'orb' keypoints, this run uses 'convpoint'"):
+        check_sensor("m.npz", {"sensor": rgbd}, sensor_header("rgbd", cam, "convpoint"))
+    check_sensor("m.npz", {}, rgbd)  # a file from before the header held the sensor: accepted, with a warning

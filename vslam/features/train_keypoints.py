@@ -97,9 +97,11 @@ class KeypointTrainConfig:
 
 
 def toy_config(cfg: KeypointTrainConfig) -> KeypointTrainConfig:
+    """The smoke-run scale: small enough for a test, long enough (40 joint steps of 2 pairs) that the
+    descriptor loss falls past its noise."""
     return dataclasses.replace(cfg, channels=(8, 16, 16, 32), desc_dim=32, shapes_steps=min(cfg.shapes_steps, 60),
                                shapes_batch=8, shapes_size=(64, 80), shapes_pool=64, adapt_homographies=3,
-                               joint_steps=min(cfg.joint_steps, 20), batch=2, size=(64, 80), image_short=80,
+                               joint_steps=min(cfg.joint_steps, 40), batch=2, size=(64, 80), image_short=80,
                                desc_points=32, coco="", tum="", kitti="", euroc="", ckpt_every=10, log_every=10)
 
 

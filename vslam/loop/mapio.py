@@ -114,9 +114,9 @@ def check_sensor(path: str | Path, header: dict, want: dict, rel_tol: float = 0.
     if have.get("extractor") != want["extractor"]:
         raise MapFileError(f"{where} with {have.get('extractor')!r} keypoints, this run uses {want['extractor']!r} "
                            "(slam.features.extractor)")
-    if (have.get("kind") == "mono") != (want["kind"] == "mono"):
-        raise MapFileError(f"{where} by a {have.get('kind')} sensor, this run is {want['kind']}: a monocular map has "
-                           "no metric scale")
+    if have.get("kind") == "mono" and want["kind"] != "mono":
+        raise MapFileError(f"{where} monocularly has no metric scale; this run is {want['kind']} (a metric map "
+                           "serves a monocular run, not the other way round)")
     for k in ("width", "height", "fx", "fy", "cx", "cy"):
         a, b = float(have.get(k, float("nan"))), float(want[k])
         if not abs(a - b) <= rel_tol * max(abs(b), 1.0):
