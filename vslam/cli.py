@@ -46,6 +46,10 @@ def _summary(result: Any, out: Path) -> None:
     print(f"frames: {len(result.trajectory)} ({int(result.tracked.sum())} tracked), {result.fps:.1f} frames/s")
     print(f"trajectory: {result.paths.get('trajectory_tum', out)}")
     if result.eval is not None:
+        if result.map_evals:  # tracking was lost and the maps never met: each is scored in its own frame
+            print(f"{len(result.map_evals)} maps never merged; the report scores the one with most frames")
+            for m, e in sorted(result.map_evals.items()):
+                print(f"  map {m}: {e.ate.translation.n} poses, {e.summary()}")
         print(result.eval.summary())
         if "report_html" in result.paths:
             print(f"report: {result.paths['report_html']}")

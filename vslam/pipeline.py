@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import json
 import logging
 import os
 import pickle
@@ -63,6 +64,9 @@ class OutputConfig:
     dir: str = "runs/latest"
     formats: tuple[str, ...] = ("tum", "kitti")
     report: bool = True
+    # maps that were never merged into the one with most frames: kept in trajectory_final.tum.txt (each in its
+    # own frame; stats.csv says which) or dropped from it
+    unmerged: Literal["keep", "drop"] = "keep"
 
 
 @dataclass(frozen=True)
@@ -90,6 +94,9 @@ class RunResult:
     # A problem found once the trajectory was written (ground truth unusable, no frame tracked): the run's
     # outputs stand, and ``vslam run`` reports it as an error after them.
     error: VslamError | None = None
+    # the final map of each written pose, and the evaluation of each map when there are several
+    map_ids: np.ndarray | None = None
+    map_evals: dict[int, EvalResult] = field(default_factory=dict)
 
     @property
     def fps(self) -> float:
@@ -176,12 +183,13 @@ def prefetch(seq: Sequence, n: int, depth: int = 3,
 
 
 # status / uncertain / pose_std_*: see FrameEstimate (issue 3: faulty frames are kept and marked uncertain;
-# a frame whose timestamp does not increase gets status "duplicate_time" and no trajectory line).
+# a frame whose timestamp does not increase gets status "duplicate_time" and no trajectory line). map_id: the
+# map the frame's pose is in (issue 38: a new map when tracking is lost; see ``vslam.tracking.atlas``).
 # ms_map_*: the local-mapping sub-stages, blank on frames that made no keyframe. n_lines / n_line_inliers:
 # segments detected / map lines kept by the pose refinement, blank without line features.
 # imu: "used" / "off" (no usable IMU samples over this stretch: visual-only), blank without an IMU.
 # ms_detector: the dynamic-object detector (slam.dynamic.source=detector), blank otherwise.
-STAT_COLUMNS = ("index", "timestamp", "tracked", "status", "uncertain", "pose_std_m", "pose_std_deg", "n_features",
+STAT_COLUMNS = ("index", "timestamp", "map_id", "tracked", "status", "uncertain", "pose_std_m", "pose_std_deg", "n_features",
                 "n_matches", "n_inliers", "n_lines", "n_line_inliers", "imu", "ms_decode", "ms_features", "ms_detector",
                 "ms_dynamic", "ms_lines", "ms_depth", "ms_pose", "ms_mapping", "ms_map_create", "ms_map_fuse_cull",
                 "ms_map_ba", "ms_map_wait", "ms_map_loop", "ms_total")
@@ -260,14 +268,32 @@ class Pipeline:
         self.config = config
 
     def _evaluate(self, seq: Sequence, traj: Trajectory, result: RunResult, out: Path) -> None:
+        """ATE/RPE against the ground truth. With several maps (never merged) each is aligned and scored on its
+        own (``RunResult.map_evals``, ``report/maps.json``); the report's headline is the map with most frames."""
         cfg = self.config
         gt = seq.groundtruth()
         if gt is None or len(traj) < 3:
             return
         result.paths["groundtruth"] = write_trajectory(out / "groundtruth.tum.txt", gt, "tum")
-        result.eval = evaluate(traj, gt, cfg.eval, monocular=cfg.dataset.sensor == "mono")
+        mono = cfg.dataset.sensor == "mono"
+        ids = result.map_ids if result.map_ids is not None else np.zeros(len(traj), np.int64)
+        maps, counts = np.unique(ids, return_counts=True)
+        if len(maps) > 1:
+            for m, n in zip(maps.tolist(), counts.tolist()):
+                if n >= 3:
+                    try:
+                        result.map_evals[m] = evaluate(traj.subset(np.flatnonzero(ids == m)), gt, cfg.eval, monocular=mono)
+                    except VslamError as e:  # a map too short to align: said, not fatal
+                        log.warning("map %d (%d frames) not evaluated: %s", m, n, e)
+            main = int(maps[np.argmax(counts)])
+            traj = traj.subset(np.flatnonzero(ids == main))
+        result.eval = evaluate(traj, gt, cfg.eval, monocular=mono)
         if cfg.output.report:
             result.paths.update(write_report(result.eval, out / "report", title=f"vslam run: {seq.name}"))
+            if result.map_evals:
+                result.paths["report_maps"] = write_text(out / "report" / "maps.json", json.dumps(
+                    {str(m): {"frames": int(np.sum(ids == m)), **e.to_dict()} for m, e in result.map_evals.items()},
+                    indent=1))
 
     def run(
         self,
@@ -311,6 +337,7 @@ class Pipeline:
         backfill: dict[int, np.ndarray] = {}  # frame index -> pose measured late (FrameEstimate.backfill)
         poses: list[np.ndarray] = []
         tracked: list[bool] = []
+        map_ids: list[int] = []  # the map each written pose is in (``vslam.tracking.atlas``)
         stats: list[dict[str, float]] = []
         stats_path = out / "stats.csv"
         paths["stats"] = stats_path
@@ -346,10 +373,12 @@ class Pipeline:
                     t0 = time.perf_counter()
                     est: FrameEstimate = odo.track(frame, front) if front is not None else odo.track(frame)
                     ms = (time.perf_counter() - t0) * 1e3
-                    for w in writers.values():
-                        w.write(frame.timestamp, est.T_world_cam)
+                    if est.has_pose:  # a frame between two maps has none: listed in stats.csv only
+                        for w in writers.values():
+                            w.write(frame.timestamp, est.T_world_cam)
                     std_m, std_deg = est.pose_std()
-                    row = {"index": frame.index, "timestamp": frame.timestamp, "tracked": int(est.tracked),
+                    row = {"index": frame.index, "timestamp": frame.timestamp, "map_id": est.map_id,
+                           "tracked": int(est.tracked),
                            "status": est.status_name, "uncertain": int(est.uncertain), "pose_std_m": std_m,
                            "pose_std_deg": std_deg,
                            "n_features": est.n_features, "n_matches": est.n_matches, "n_inliers": est.n_inliers,
@@ -358,11 +387,13 @@ class Pipeline:
                     sw.writerow([_fmt_stat(c, row.get(c, "")) for c in STAT_COLUMNS])
                     fstats.flush()
                     stats.append(row)
-                    stamps.append(frame.timestamp)
-                    indices.append(frame.index)
                     backfill.update(est.backfill)
-                    poses.append(est.T_world_cam)
-                    tracked.append(est.tracked)
+                    if est.has_pose:
+                        stamps.append(frame.timestamp)
+                        indices.append(frame.index)
+                        poses.append(est.T_world_cam)
+                        tracked.append(est.tracked)
+                        map_ids.append(est.map_id)
                     if progress:
                         progress(k + 1, n_total)
         finally:
@@ -388,12 +419,26 @@ class Pipeline:
             log.info("%d frames before the monocular initialisation localised afterwards", len(backfill))
             paths["trajectory_final"] = write_trajectory(out / "trajectory_final.tum.txt",
                                                          Trajectory(np.array(stamps), np.array(poses)), "tum")
+        # maps never merged into one another: each frame's pose is in its own map's frame
+        final_ids = np.array(odo.final_map_ids(map_ids) if hasattr(odo, "final_map_ids") else map_ids, np.int64)
+        maps, counts = np.unique(final_ids, return_counts=True)
+        main_map = int(maps[np.argmax(counts)]) if len(maps) else 0
+        if len(maps) > 1:
+            log.warning("%d maps were never merged (frames per map: %s); trajectory_final.tum.txt holds %s",
+                        len(maps), dict(zip(maps.tolist(), counts.tolist())),
+                        "every map, each in its own frame (stats.csv map_id)" if cfg.output.unmerged == "keep"
+                        else f"map {main_map} only (output.unmerged: drop)")
+            keep = np.ones(len(poses), bool) if cfg.output.unmerged == "keep" else final_ids == main_map
+            paths["trajectory_final"] = write_trajectory(
+                out / "trajectory_final.tum.txt",
+                Trajectory(np.array(stamps)[keep], np.array(poses).reshape(-1, 4, 4)[keep]), "tum")
         traj = Trajectory(np.array(stamps), np.array(poses).reshape(-1, 4, 4))
         result = RunResult(traj, np.array(tracked, bool), stats, None, paths, seconds)
-        if len(traj) and not any(tracked):
+        result.map_ids = final_ids
+        if stats and not any(tracked):
             # Placeholder poses only (no map was ever made): written, as every frame gets a line, but not a result.
             result.error = TrackingError(
-                f"no frame of {len(traj)} was tracked: {paths.get('trajectory_tum', out)} holds placeholder poses "
+                f"no frame of {len(stats)} was tracked: {paths.get('trajectory_tum', out)} holds placeholder poses "
                 f"(status per frame in {stats_path}); check the sensor, the calibration and slam.features")
         elif cfg.eval.enabled:
             try:

@@ -79,6 +79,29 @@ class Map:
         """Mark the map changed (for code that moves points or keyframes directly)."""
         self.revision += 1
 
+    def successor(self) -> Map:
+        """An empty map whose keyframe and point ids continue this one's: the maps of one run (``Atlas``) never
+        share an id, so frames, keyframes and points keep theirs when two maps are merged."""
+        m = Map()
+        m._next_kf, m._next_pt = self._next_kf, self._next_pt
+        return m
+
+    def absorb(self, other: Map, T_this_other: np.ndarray) -> None:
+        """Move every keyframe and point of ``other`` into this map, expressed in this map's frame (x <- T x);
+        ``other`` is left empty. The two maps share no observation yet: the caller fuses the seam."""
+        R, t = T_this_other[:3, :3], T_this_other[:3, 3]
+        for k, kf in other.keyframes.items():
+            kf.T_world_cam = T_this_other @ kf.T_world_cam
+            self.keyframes[k] = kf
+        for p, mp in other.points.items():
+            mp.xyz = R @ mp.xyz + t
+            self.points[p] = mp
+        self._next_kf = max(self._next_kf, other._next_kf)
+        self._next_pt = max(self._next_pt, other._next_pt)
+        other.keyframes, other.points = {}, {}
+        self.revision += 1
+        other.revision += 1
+
     # -- creation / removal ------------------------------------------------
     def add_keyframe(self, frame_index: int, timestamp: float, T_world_cam: np.ndarray, features: Features,
                      depth: np.ndarray, ur: np.ndarray) -> KeyFrame:

@@ -54,8 +54,12 @@ class FrameEstimate:
     times_ms: dict[str, float] = field(default_factory=dict)
     # What the pose is (issue 3, faults): "tracked", "relocalised" (measured after a loss), "no_depth"
     # (RGB-D/stereo frame measured from 2-D matches only), "predicted" (constant velocity through a
-    # failure), "uninitialised" (no map yet: placeholder pose). "" = derived from ``tracked``.
+    # failure), "uninitialised" (no map yet: placeholder pose), "new_map" (tracking was lost: a new map starts
+    # at this frame, ``vslam.tracking.atlas``), "lost" (the old map was given up and no new one could start
+    # yet: the last pose held). "" = derived from ``tracked``.
     status: str = ""
+    # the map the pose is expressed in (a new one each time tracking is lost; merged maps keep the older id)
+    map_id: int = 0
     # (6,6) covariance of the measured pose, (rotation rad, translation m) of the left perturbation of
     # T_cam_world (``vslam.backend.pose_only.pose_covariance``); None when not measured or not estimated.
     pose_cov: np.ndarray | None = None
@@ -68,11 +72,16 @@ class FrameEstimate:
     @property
     def uncertain(self) -> bool:
         """True when the pose was not measured from a full frame: predicted, uninitialised, no depth."""
-        return self.status_name not in ("tracked", "relocalised")
+        return self.status_name not in ("tracked", "relocalised", "new_map")
 
     @property
     def status_name(self) -> str:
         return self.status or ("tracked" if self.tracked else "predicted")
+
+    @property
+    def has_pose(self) -> bool:
+        """False for a frame between two maps (status "lost"): it is left out of the trajectory."""
+        return self.status_name != "lost"
 
     def pose_std(self) -> tuple[float, float]:
         """(position std m, rotation std deg) from ``pose_cov``: sqrt of the traces; NaN when unknown."""

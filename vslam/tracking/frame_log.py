@@ -25,8 +25,17 @@ class FrameLog:
 
     def __init__(self, slam_map: Map):
         self.map = slam_map
+        self.archived: dict[int, Map] = {}  # the Atlas's other maps: keyframe ids are unique across them
         self._rec: dict[int, tuple[int | None, np.ndarray]] = {}
         self.moved = False  # a global change happened after some frames were recorded
+
+    def _keyframe(self, kf_id: int):
+        if kf_id in self.map.keyframes:
+            return self.map.keyframes[kf_id]
+        for m in self.archived.values():
+            if kf_id in m.keyframes:
+                return m.keyframes[kf_id]
+        return None
 
     def record(self, frame_index: int, ref_kf: int | None, T_world_cam: np.ndarray) -> None:
         T = np.array(T_world_cam, dtype=np.float64)
@@ -59,5 +68,6 @@ class FrameLog:
         out = []
         for i in frame_indices:
             ref, P = self._rec[i]
-            out.append(P if ref is None else self.map.keyframes[ref].T_world_cam @ P)
+            kf = None if ref is None else self._keyframe(ref)
+            out.append(P if kf is None else kf.T_world_cam @ P)
         return np.array(out, dtype=np.float64).reshape(-1, 4, 4)

@@ -1,0 +1,123 @@
+"""Several maps in one run (ORB-SLAM3's Atlas): a new map when tracking is lost, maps merged when they meet.
+
+Whatever stops tracking -- a gap in the recording, a fast turn, a white wall, a person filling the view --
+the tracker does not extrapolate for ever: once every recovery step has failed for ``new_map_after_s``, the
+current map is archived here and a new one starts (RGB-D / stereo: from the frame's own depth, at once;
+monocular: at the next successful two-view initialisation). Every new keyframe of the current map is then
+looked for in the archived maps by its place descriptor (bag of words over its ORB descriptors, or the loop
+closer's database when that is on); a candidate confirmed by descriptor matching + PnP against that map's
+points (``Tracker.track_keyframe``, the relocalisation step) gives the rigid transform between the two maps,
+and the current map is moved into the old one (``Map.absorb``): the seam's duplicate points are fused and a
+local BA welds it (``SlamTracker._merge``). Monocular maps are not merged: their relative scale needs a Sim3
+alignment, which is not built yet.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from vslam.backend.ba import BackendConfig, StereoCamera
+from vslam.data.types import PinholeCamera
+from vslam.features.base import Features
+from vslam.loop.database import KeyframeDatabase
+from vslam.mapping.map import Map
+from vslam.tracking.tracker import TrackingConfig, Tracker, TrackResult
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class AtlasConfig:
+    """``slam.atlas``: what happens when tracking is lost.
+
+    new_map_after_s: every recovery step (motion model, reference keyframe, newest keyframes, place
+        relocalisation) has failed this long since the last tracked frame: archive the map, start a new one
+        from the first frame that can make one (RGB-D / stereo: ``min_points`` keypoints with depth; monocular:
+        re-initialise). A gap in the images longer than this starts one at the first frame after it. Short
+        enough that a lost camera is never extrapolated for long (30 Hz: 3 frames), long enough that one
+        blurred frame does not split the map.
+    bridge_s: the longest a frame is "predicted" (motion model) while no new map can start; later frames
+        have no pose ("lost": in stats.csv, not in the trajectory).
+    min_points: keypoints with depth a frame needs to start a new map (ORB-SLAM3 asks 500 keypoints): a
+        blurred or dark frame's few corners would make a map nothing can track against.
+    merge: look for each new keyframe in the archived maps and merge on a confirmed match (RGB-D, stereo).
+    merge_top_k: archived keyframes tried per new keyframe, best place-descriptor score first.
+    merge_min_inliers: points the PnP + local-map round must keep for a merge: more than tracking's 20, since
+        a wrong merge bends two maps together.
+    merge_min_score: place-descriptor similarity floor of a candidate.
+    """
+
+    enabled: bool = True
+    new_map_after_s: float = 0.1
+    bridge_s: float = 1.0
+    min_points: int = 300
+    merge: bool = True
+    merge_top_k: int = 5
+    merge_min_inliers: int = 60
+    merge_min_score: float = 0.05
+
+
+class Atlas:
+    """The archived maps of a run and their keyframe databases."""
+
+    def __init__(self, cfg: AtlasConfig, cam: PinholeCamera, stereo_cam: StereoCamera, tracking: TrackingConfig,
+                 backend: BackendConfig, descriptor=None):
+        self.cfg, self.cam, self.stereo_cam, self.tracking, self.backend = cfg, cam, stereo_cam, tracking, backend
+        self.descriptor = descriptor  # PlaceDescriptor of the keyframes (None: maps are kept, never merged)
+        self.maps: dict[int, Map] = {}
+        self.dbs: dict[int, KeyframeDatabase] = {}
+        self.parent: dict[int, int] = {}  # map id -> the map it was merged into
+        self.n_maps = 1  # ids handed out so far (map 0 is the first)
+        self.merges: list[tuple[int, int, int, int]] = []  # (merged map, into map, query kf, candidate kf)
+
+    def new_id(self) -> int:
+        self.n_maps += 1
+        return self.n_maps - 1
+
+    def final_id(self, map_id: int) -> int:
+        """The map that ``map_id`` ended in after the merges."""
+        while map_id in self.parent:
+            map_id = self.parent[map_id]
+        return map_id
+
+    def archive(self, map_id: int, m: Map, db: KeyframeDatabase | None = None) -> None:
+        """Keep ``m`` (and its place database; built from its keyframes when not given)."""
+        if not m.keyframes:
+            return
+        self.maps[map_id] = m
+        if self.descriptor is None:
+            return
+        if db is None:
+            db = KeyframeDatabase(self.descriptor.dim)
+            for k, kf in m.keyframes.items():
+                db.add(k, self.descriptor.describe(None, kf.features))
+        self.dbs[map_id] = db
+        log.info("map %d archived: %d keyframes, %d points", map_id, len(m.keyframes), len(m.points))
+
+    def describe(self, features: Features, image: np.ndarray | None = None) -> np.ndarray | None:
+        return None if self.descriptor is None else self.descriptor.describe(image, features)
+
+    def locate(self, feats: Features, ur: np.ndarray, vec: np.ndarray) -> tuple[int, int, TrackResult] | None:
+        """The archived map a keyframe (keypoints ``feats``, virtual right ``ur``, descriptor ``vec``) is seen in:
+        (map id, candidate keyframe, its pose there), or None."""
+        if vec is None or not self.cfg.merge or len(feats) < self.tracking.min_inliers:
+            return None
+        tree = cKDTree(feats.uv)
+        for map_id in sorted(self.maps, reverse=True):  # the most recent map first
+            db = self.dbs.get(map_id)
+            if db is None or not len(db):
+                continue
+            tracker = Tracker(self.maps[map_id], self.cam, self.stereo_cam, self.tracking, self.backend)
+            for cand, _ in db.query(vec, self.cfg.merge_top_k, min_score=self.cfg.merge_min_score):
+                res = tracker.track_keyframe(feats, ur, cand, tree, "merge")
+                if res is not None and res.ok and res.n_inliers >= self.cfg.merge_min_inliers:
+                    return map_id, cand, res
+        return None
+
+    def take(self, map_id: int) -> tuple[Map, KeyframeDatabase | None]:
+        """Remove an archived map (it becomes the current one again, with the current map merged into it)."""
+        return self.maps.pop(map_id), self.dbs.pop(map_id, None)
