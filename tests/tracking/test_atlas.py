@@ -13,6 +13,7 @@ from vslam.data.synthetic import SyntheticConfig, SyntheticSequence
 from vslam.data.trajectory import read_trajectory
 from vslam.geometry.se3 import inv_T, make_T
 from vslam.loop.descriptor import make_place_descriptor
+from vslam.loop.mapio import load_map
 from vslam.mapping.map import Map
 from vslam.pipeline import Pipeline, PipelineConfig
 from vslam.tracking.atlas import Atlas
@@ -107,7 +108,8 @@ def test_a_gap_starts_a_new_map_at_once_and_maps_are_scored_apart(tmp_path):
     """RGB-D, 2 s cut out of a path that does not come back: the frame after the gap starts map 1 (no frame
     predicted), the two maps are never merged, and each is evaluated in its own frame."""
     seq = select_frames(SyntheticSequence(SyntheticConfig(n_frames=130, **SMALL)), drop=((40, 99),))
-    cfg = PipelineConfig.load(None, {"dataset": {"kind": "synthetic"}, "output": {"report": True}})
+    cfg = PipelineConfig.load(None, {"dataset": {"kind": "synthetic"}, "output": {"report": True},
+                                     "slam": {"save_map": True}})
     res, rows = _run(seq, cfg, tmp_path)
     by_index = {int(r["index"]): r for r in rows}
     assert by_index[100]["status"] == "new_map" and by_index[100]["map_id"] == "1"
@@ -118,6 +120,19 @@ def test_a_gap_starts_a_new_map_at_once_and_maps_are_scored_apart(tmp_path):
         assert e.ate.translation.rmse < 0.006
     assert (tmp_path / "report" / "maps.json").exists()
     assert len(read_trajectory(tmp_path / "trajectory_final.tum.txt")) == 70
+    # the map file holds both maps, each whole, and a run loading it has the old one to merge into
+    loaded = load_map(tmp_path / "map.vslam.npz")
+    assert loaded.current == 1 and sorted(loaded.others) == [0] and loaded.header["maps"] == [0, 1]
+    m0, db0 = loaded.others[0]
+    assert sorted(k.frame_index for k in loaded.map.keyframes.values())[0] == 100
+    assert max(k.frame_index for k in m0.keyframes.values()) < 40 and len(db0) == len(m0.keyframes)
+    assert not set(m0.points) & set(loaded.map.points)
+    for m in (m0, loaded.map):
+        for p in m.points.values():
+            assert set(p.observations) <= set(m.keyframes)
+    again = SlamTracker(seq.calibration, "rgbd", SlamConfig(load_map=str(tmp_path / "map.vslam.npz")))
+    assert again.map_id == 1 and sorted(again.atlas.maps) == [0] and len(again.atlas.dbs[0]) == len(m0.keyframes)
+    assert again.atlas.new_id() == 2
 
 
 def test_a_new_map_that_meets_the_old_one_is_merged(tmp_path):

@@ -313,17 +313,40 @@ def attach_saved_map(slam, path: str) -> None:
         raise MapFileError(f"{path}: place descriptors of dimension {loaded.database.dim}, this config uses "
                            f"{slam.loop.db.dim} (slam.loop.descriptor)")
     slam.loop.db = loaded.database
+    slam.map_id = loaded.current
+    if loaded.others:
+        if slam.atlas is not None:  # the run's other maps: new keyframes may merge into them
+            if slam.atlas.descriptor is None:
+                slam.atlas.descriptor = slam.loop.descriptor
+            for mid, (om, odb) in loaded.others.items():
+                slam.atlas.archive(mid, om, odb)
+                slam.frames.archived[mid] = om
+            slam.atlas.n_maps = max([loaded.current, *loaded.others]) + 1
+        else:
+            log.warning("%s: %d other maps in the file are not used (slam.atlas is off)", path, len(loaded.others))
     log.info("loaded map %s: %s", path, loaded.map.stats())
 
 
 def save_slam_map(slam, path) -> Path:
-    """Write a ``SlamTracker``'s map with the place descriptor of every keyframe (computed if missing)."""
+    """Write a ``SlamTracker``'s maps (the current one and those its Atlas archived) with the place descriptor
+    of every keyframe (computed if missing)."""
     from vslam.loop.mapio import save_map, sensor_header
 
     desc = slam.loop.descriptor if slam.loop is not None else make_place_descriptor(slam.cfg.loop.descriptor, slam.cfg.loop.vocabulary, slam.cfg.loop.weights)
-    db = slam.loop.db if slam.loop is not None else KeyframeDatabase(desc.dim)
-    for kf in slam.map.keyframes.values():
-        if kf.id not in db:
-            db.add(kf.id, desc.describe(None, kf.features))
+    db = KeyframeDatabase(desc.dim)
+    if slam.loop is not None:
+        for k in slam.loop.db.ids().tolist():
+            db.add(k, slam.loop.db.vector(k))
+    others = dict(slam.atlas.maps) if slam.atlas is not None else {}
+    for mid, om in others.items():
+        odb = slam.atlas.dbs.get(mid)
+        if odb is not None and odb.dim == db.dim:
+            for k in odb.ids().tolist():
+                db.add(k, odb.vector(k))
+    for m in [slam.map, *others.values()]:
+        for kf in m.keyframes.values():
+            if kf.id not in db:
+                db.add(kf.id, desc.describe(None, kf.features))
     return save_map(path, slam.map, db, slam.cfg.loop.descriptor,
-                    sensor=sensor_header(slam.sensor, slam.cam, slam.cfg.features.extractor))
+                    sensor=sensor_header(slam.sensor, slam.cam, slam.cfg.features.extractor),
+                    others=others, current=slam.map_id)

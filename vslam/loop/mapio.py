@@ -1,16 +1,18 @@
 """Map save / load: keyframes, map points and place descriptors in one versioned ``.npz`` file.
 
 Layout (``FORMAT_VERSION`` 1): a JSON ``header`` (format name, version, counts, descriptor kind and dim,
-next ids) plus flat numpy arrays -- per keyframe its pose and the offsets of its keypoints in the
+next ids, the sensor that made it, the map ids and which one was current) plus flat numpy arrays -- per keyframe its pose and the offsets of its keypoints in the
 concatenated per-keypoint arrays (raw, uv, desc, octave, response, depth, ur, point_ids), per point its
 position, representative descriptor, first keyframe and visibility counters, and one place-descriptor row
-per keyframe. Observations are not stored: they are exactly the keyframes' ``point_ids`` and are rebuilt
+per keyframe; ``kf_map`` says which map (``vslam.tracking.atlas``: a run that lost tracking has several; a
+file without it holds one). Observations are not stored: they are exactly the keyframes' ``point_ids`` and are rebuilt
 from them, so the file cannot hold an inconsistent map. numpy only (``allow_pickle=False``): a map file
 never executes code when loaded.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import zipfile
 import zlib
@@ -34,20 +36,25 @@ class MapFileError(VslamError):
 
 @dataclass
 class LoadedMap:
-    map: Map
-    database: KeyframeDatabase
+    map: Map  # the map that was current when saved
+    database: KeyframeDatabase  # its keyframes' place descriptors
     header: dict
+    current: int = 0
+    others: dict[int, tuple[Map, KeyframeDatabase]] = dataclasses.field(default_factory=dict)  # the other maps
 
 
 def save_map(path: str | Path, m: Map, database: KeyframeDatabase, descriptor_kind: str = "bow",
-             sensor: dict | None = None) -> Path:
-    """Write ``m`` and the place descriptors of its keyframes (every keyframe must be in ``database``).
+             sensor: dict | None = None, others: dict[int, Map] | None = None, current: int = 0) -> Path:
+    """Write ``m`` (map id ``current``), the ``others`` maps of the run, and the place descriptors of all their
+    keyframes (every keyframe must be in ``database``).
 
     ``sensor``: what made the map (``sensor_header``), so that a run with another camera, sensor or keypoint
     type refuses it instead of tracking nothing against it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    kfs = list(m.keyframes.values())
+    maps = {current: m, **(others or {})}
+    kfs = [kf for mm in maps.values() for kf in mm.keyframes.values()]
+    kf_map = np.array([mid for mid, mm in maps.items() for _ in mm.keyframes], np.int64)
     missing = [k.id for k in kfs if k.id not in database]
     if missing:
         raise MapFileError(f"{path}: keyframes {missing[:5]} have no place descriptor")
@@ -59,13 +66,15 @@ def save_map(path: str | Path, m: Map, database: KeyframeDatabase, descriptor_ki
         out = np.concatenate(parts) if parts else np.zeros(0)
         return out.astype(dtype) if dtype is not None else out
 
-    pts = list(m.points.values())
+    pts = [mp for mm in maps.values() for mp in mm.points.values()]
     header = {"format": FORMAT, "version": FORMAT_VERSION, "keyframes": len(kfs), "points": len(pts),
               "descriptor": descriptor_kind, "descriptor_dim": database.dim,
-              "next_kf": m._next_kf, "next_pt": m._next_pt, **({"sensor": sensor} if sensor else {})}
+              "next_kf": max(mm._next_kf for mm in maps.values()), "next_pt": max(mm._next_pt for mm in maps.values()),
+              "maps": sorted(maps), "current": current, **({"sensor": sensor} if sensor else {})}
     arrays = {
         "header": np.frombuffer(json.dumps(header).encode(), np.uint8),
         "kf_id": np.array([k.id for k in kfs], np.int64),
+        "kf_map": kf_map,
         "kf_frame_index": np.array([k.frame_index for k in kfs], np.int64),
         "kf_timestamp": np.array([k.timestamp for k in kfs], np.float64),
         "kf_T": np.array([k.T_world_cam for k in kfs], np.float64).reshape(-1, 4, 4),
@@ -166,7 +175,24 @@ def _rebuild(path: Path, z: dict, header: dict) -> LoadedMap:
     # never reuse an id, even if the header's counters are behind the stored ids
     m._next_kf = max(int(header["next_kf"]), max(m.keyframes, default=-1) + 1)
     m._next_pt = max(int(header["next_pt"]), max(m.points, default=-1) + 1)
-    db = KeyframeDatabase(int(header["descriptor_dim"]))
+    kf_map = z["kf_map"].tolist() if "kf_map" in z else [0] * len(z["kf_id"])
+    of = dict(zip(z["kf_id"].tolist(), kf_map))
+    current = int(header.get("current", 0))
+    maps: dict[int, tuple[Map, KeyframeDatabase]] = {}
+    for mid in sorted(set(kf_map) | {current}):
+        part = Map()
+        part._next_kf, part._next_pt = m._next_kf, m._next_pt
+        maps[mid] = (part, KeyframeDatabase(int(header["descriptor_dim"])))
     for kid, v in zip(z["kf_id"].tolist(), z["kf_place"]):
+        part, db = maps[of[kid]]
+        part.keyframes[kid] = m.keyframes[kid]
         db.add(kid, v)
-    return LoadedMap(m, db, header)
+    for pid, mp in m.points.items():
+        if not mp.observations:
+            raise MapFileError(f"{path}: point {pid} is observed by no keyframe")
+        home = {of[k] for k in mp.observations}
+        if len(home) != 1:
+            raise MapFileError(f"{path}: point {pid} is observed in maps {sorted(home)}")
+        maps[home.pop()][0].points[pid] = mp
+    cur_map, cur_db = maps.pop(current)
+    return LoadedMap(cur_map, cur_db, header, current, maps)
