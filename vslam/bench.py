@@ -30,6 +30,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
+
 from vslam.childproc import peak_rss_mb
 from vslam.config import deep_merge, from_dict, load_yaml, parse_overrides
 from vslam.errors import ConfigError
@@ -91,6 +93,14 @@ def _job_run(config: str | None, overrides: dict[str, Any], out_dir: str) -> dic
             row["rpe_t"] = first.translation.rmse
             row["rpe_r"] = first.rotation_deg.rmse
             row["rpe_delta"] = first.label
+    # issue 38: frames with no pose (between maps), maps started, and each map's own ATE when they never merged
+    status = [str(r.get("status", "")) for r in res.stats]
+    row["lost"] = status.count("lost")
+    row["new_maps"] = status.count("new_map")
+    if res.map_evals:
+        ids = res.map_ids if res.map_ids is not None else []
+        row["maps"] = {str(m): {"frames": int(np.sum(ids == m)), "ate_rmse": e.ate.translation.rmse}
+                       for m, e in sorted(res.map_evals.items())}
     row.update(stage_times(Path(out_dir) / "stats.csv"))
     row["peak_rss_mb"] = peak_rss_mb()
     return row
@@ -519,8 +529,13 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
         ate = _fmt(r.get("ate_rmse"), ".4f")
         if r.get("ate_rmse_spread") and repeat > 1:
             ate += f" ± {r['ate_rmse_spread']:.4f}"
+        if r.get("maps"):  # maps never merged: the headline is the one with most frames, then each on its own
+            ate += f" ({len(r['maps'])} maps: " + ", ".join(
+                f"{m['frames']} fr {m['ate_rmse']:.4f}" for m in r["maps"].values()) + ")"
         rpe = "–" if r.get("rpe_t") is None else f"{r['rpe_t']:.4f} m / {r['rpe_r']:.3f}° per {r['rpe_delta']}"
         tracked = f"{r['frames']} ({r['tracked']})" if "tracked" in r else f"{r['frames']}"
+        if r.get("new_maps") or r.get("lost"):
+            tracked += f", {r.get('new_maps', 0)} new map(s), {r.get('lost', 0)} lost"
         det = ("yes" if r.get("identical") else "**no**") if repeat > 1 and "ate_rmse" in r else "–"
         path = r.get("path_m")
         pct = "–" if path is None or r.get("ate_rmse") is None or path <= 0 else f"{100 * r['ate_rmse'] / path:.2f}"
