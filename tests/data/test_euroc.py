@@ -245,7 +245,6 @@ def test_missing_files(euroc_dir: Path, rel: str) -> None:
         ("imu0/data.csv", 5, f"{T0 + 3 * DT_IMU},0,0,0,9.8,0", r"imu0/data.csv:5: expected 7 columns, found 6"),
         ("imu0/data.csv", 5, f"{T0 + 3 * DT_IMU},0,0,0,9.8,0,g", r"imu0/data.csv:5: column 7 is not a number"),
         ("imu0/data.csv", 5, f"{T0},0,0,0,9.8,0,0", r"imu0/data.csv:5: timestamp .* goes back in time"),
-        ("state_groundtruth_estimate0/data.csv", 2, "1,2,3", r"state_groundtruth_estimate0/data.csv:2: expected 17 columns, found 3"),
         ("cam0/sensor.yaml", 13, "intrinsics: [458.654, 457.296, 367.215]", r"cam0/sensor.yaml:13: 'intrinsics' must have 4 numbers, found 3"),
         ("cam0/sensor.yaml", 14, "distortion_model: polynomial", r"cam0/sensor.yaml:14: unknown distortion_model 'polynomial'"),
         ("cam0/sensor.yaml", 15, "distortion_coefficients: [1, 2]", r"cam0/sensor.yaml:15: 'distortion_coefficients' must have 4 or 5 numbers"),
@@ -257,6 +256,23 @@ def test_bad_input_fails_at_open_with_file_and_line(euroc_dir: Path, rel: str, l
     _edit(euroc_dir / "mav0" / rel, line, text)
     with pytest.raises(DatasetError, match=message):
         EurocSequence(euroc_dir)
+
+
+@pytest.mark.parametrize(
+    "line, text, message",
+    [
+        (2, "1,2,3", r"state_groundtruth_estimate0/data.csv:2: expected 17 columns, found 3"),
+        (3, f"{T0 + DT_CAM},0,0,0,0,0,0,0" + ",0" * 9, r"data.csv:3: quaternion \(columns 5-8\) has norm 0, expected unit"),
+    ],
+)
+def test_bad_groundtruth_is_raised_by_groundtruth_not_at_open(euroc_dir: Path, line: int, text: str, message: str) -> None:
+    """SLAM does not need the ground truth: a run writes its trajectory, then reports the file's problem."""
+    _edit(euroc_dir / "mav0" / "state_groundtruth_estimate0" / "data.csv", line, text)
+    seq = EurocSequence(euroc_dir)
+    assert next(iter(seq)).T_world_cam is None  # frames carry no ground-truth pose then
+    for call in (seq.groundtruth, seq.groundtruth_body):
+        with pytest.raises(DatasetError, match=message):
+            call()
 
 
 def test_empty_camera_list(euroc_dir: Path) -> None:

@@ -29,7 +29,8 @@ from typing import Any, cast
 import cv2
 import numpy as np
 
-from vslam.data.textio import check_increasing, read_rows, read_yaml_mapping, require_dir, require_file, yaml_numbers
+from vslam.data.textio import (check_increasing, check_unit_quaternions, read_rows, read_yaml_mapping, require_dir,
+                               require_file, yaml_numbers)
 from vslam.data.trajectory import Trajectory
 from vslam.data.types import Calibration, DistortionModel, Frame, ImuNoise, ImuSamples, PinholeCamera, SensorKind, Sequence
 from vslam.errors import DatasetError
@@ -167,10 +168,11 @@ def read_body_groundtruth(mav0: Path) -> BodyGroundTruth | None:
         path = mav0 / folder / "data.csv"
         if not path.is_file():
             continue
-        _, ns, rows = read_ns_table(path, ncols, "ground-truth file")
+        lines, ns, rows = read_ns_table(path, ncols, "ground-truth file")
         if not rows:
             raise DatasetError(path, "ground-truth file has no rows")
         v = np.array([[float(x) for x in r[1:]] for r in rows], dtype=np.float64)
+        check_unit_quaternions(path, v[:, 3:7], np.asarray(lines), first_col=5)
         poses = np.tile(np.eye(4), (len(v), 1, 1))
         poses[:, :3, :3] = quat_wxyz_to_R(v[:, 3:7])
         poses[:, :3, 3] = v[:, 0:3]
@@ -182,11 +184,15 @@ def read_body_groundtruth(mav0: Path) -> BodyGroundTruth | None:
 
 
 def read_imu_csv(path: Path) -> tuple[ImuSamples, float]:
-    """imu0/data.csv -> (ImuSamples in seconds, median sample period s); a NaN or malformed row is an error naming its line."""
-    _, ns, rows = read_ns_table(path, 7, "IMU file")
+    """imu0/data.csv -> (ImuSamples in seconds, median sample period s); a NaN or malformed row is an error naming its line.
+
+    The samples keep their file and line numbers: readings that parse but cannot be believed (out of the
+    sensor's range, spikes) are rejected later, by ``vslam.inertial.gate``, which names them.
+    """
+    lines, ns, rows = read_ns_table(path, 7, "IMU file")
     v = np.array([[float(x) for x in r[1:]] for r in rows], dtype=np.float64).reshape(-1, 6)
     period = float(np.median(np.diff(ns))) * 1e-9 if len(ns) > 1 else 0.005
-    return ImuSamples(ns_to_s(ns), v[:, 0:3], v[:, 3:6]), period
+    return ImuSamples(ns_to_s(ns), v[:, 0:3], v[:, 3:6], str(path), lines), period
 
 
 # ----------------------------------------------------------------------------- the sequence
@@ -242,7 +248,13 @@ class EurocSequence(Sequence):
         noise = self._open_imu()
         self.calibration = Calibration(cam0=cam0_model, cam1=cam1_model, T_body_cam0=T_b_c0, T_body_cam1=T_b_c1, imu=noise)
 
-        self._gt_body = read_body_groundtruth(self.mav0)
+        # A ground-truth problem is raised by groundtruth(), after a run has written its trajectory: it must
+        # not stop SLAM, which does not need the ground truth.
+        self._gt_error: DatasetError | None = None
+        try:
+            self._gt_body = read_body_groundtruth(self.mav0)
+        except DatasetError as e:
+            self._gt_body, self._gt_error = None, e
         self._gt_cam: Trajectory | None = None
         if self._gt_body is not None:
             self._gt_cam = Trajectory(self._gt_body.trajectory.timestamps, self._gt_body.trajectory.poses @ T_b_c0)
@@ -308,7 +320,10 @@ class EurocSequence(Sequence):
                 yield frame
 
     def groundtruth(self) -> Trajectory | None:
-        """T_world_cam0 at the ground-truth rate (body poses @ T_body_cam0)."""
+        """T_world_cam0 at the ground-truth rate (body poses @ T_body_cam0); DatasetError when the file is
+        malformed."""
+        if self._gt_error is not None:
+            raise self._gt_error
         return self._gt_cam
 
     def imu(self) -> ImuSamples | None:
@@ -319,6 +334,8 @@ class EurocSequence(Sequence):
 
     def groundtruth_body(self) -> BodyGroundTruth | None:
         """Ground truth of the body (IMU) frame with velocities and biases (EuRoC), for IMU work."""
+        if self._gt_error is not None:
+            raise self._gt_error
         return self._gt_body
 
     def frame_pose(self, i: int) -> np.ndarray | None:

@@ -117,11 +117,17 @@ class Calibration:
 
 @dataclass
 class ImuSamples:
-    """IMU readings in the body frame: t (N,) s, gyro (N,3) rad/s, accel (N,3) m/s^2 (specific force)."""
+    """IMU readings in the body frame: t (N,) s, gyro (N,3) rad/s, accel (N,3) m/s^2 (specific force).
+
+    source / line: where the readings came from, so that a rejected one can be named (the file, and (N,) int64
+    1-based line numbers in it counting the header); "" / None for generated data.
+    """
 
     t: np.ndarray
     gyro: np.ndarray
     accel: np.ndarray
+    source: str = ""
+    line: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.t)
@@ -134,7 +140,8 @@ class ImuSamples:
         """Samples with t0 < t <= t1 (the samples a frame at t1 owns after a frame at t0)."""
         lo = np.searchsorted(self.t, t0, side="right")
         hi = np.searchsorted(self.t, t1, side="right")
-        return ImuSamples(self.t[lo:hi], self.gyro[lo:hi], self.accel[lo:hi])
+        line = self.line[lo:hi] if self.line is not None else None
+        return ImuSamples(self.t[lo:hi], self.gyro[lo:hi], self.accel[lo:hi], self.source, line)
 
 
 @dataclass

@@ -10,6 +10,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+import numpy as np
+
 from vslam.data.types import ImuNoise
 from vslam.errors import ConfigError
 
@@ -29,6 +31,16 @@ class InertialConfig:
     still_max_force_error: allowed | |mean specific force| - g | in a still window, m/s^2.
     prior_accel_bias_sigma / prior_gyro_bias_sigma: bias prior sigmas for the first bias state (m/s^2, rad/s).
     prior_velocity_sigma: velocity prior sigma after static init, m/s.
+    accel_range / gyro_range: the sensor's full scale (m/s^2, rad/s); a reading at or beyond it is clipped or
+        corrupt and is dropped (``vslam.inertial.gate``). The defaults, 16 g and 2000 deg/s, are the largest
+        ranges of the common MEMS IMUs (MPU-6000/9250, ICM-20602/42688, BMI088's gyro); a dataset config
+        narrows them to its sensor (EuRoC's ADIS16448: 18 g, 1000 deg/s).
+    spike_window / spike_sigmas / spike_floor_accel / spike_floor_gyro: the Hampel spike test
+        (``vslam.inertial.gate``): samples each side, MAD-scale multiple, absolute floors (m/s^2, rad/s).
+        The floors, 3 g and 5 rad/s, are ~4.5x and ~16x the largest departure of a clean EuRoC sample from its
+        neighbours' median (rotor vibration, k = 5), so real vibration passes.
+    max_gap_s: a longer hole between accepted samples is not integrated: the inertial factors are off over
+        it (``vslam.tracking.vio``), s.
     """
 
     gravity: float = 9.81
@@ -47,6 +59,13 @@ class InertialConfig:
     prior_accel_bias_sigma: float = 0.1
     prior_gyro_bias_sigma: float = 0.01
     prior_velocity_sigma: float = 0.05
+    accel_range: float = 16.0 * 9.80665
+    gyro_range: float = float(np.radians(2000.0))
+    spike_window: int = 5
+    spike_sigmas: float = 10.0
+    spike_floor_accel: float = 30.0
+    spike_floor_gyro: float = 5.0
+    max_gap_s: float = 0.05
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):

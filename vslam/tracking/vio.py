@@ -22,6 +22,16 @@ Prediction: once initialised, a frame's pose prior is the IMU propagation of the
 constant-velocity model. A frame vision cannot track (blackout, too few inliers) keeps the predicted pose
 and velocity, so the trajectory follows the IMU until tracking recovers around the predicted pose.
 
+IMU data is checked before it is believed (issue 39). Each sample passes the gate of ``vslam.inertial.gate``
+(sensor range, Hampel spike test) or is left out, and counted; ``finish`` warns once with the count and the first
+rejected file line. A frame whose interval the accepted samples do not cover (a hole over
+``imu.max_gap_s``, samples ending before the images, all rejected) turns the inertial side off: no IMU prediction
+(constant velocity instead) and no IMU factors, so tracking and local BA are visual-only, with one warning per
+stretch. An IMU factor that the VI BA finds wildly inconsistent with vision (``ba.max_imu_chi2``) is dropped and
+turns the inertial side off the same way. When good data is back, the next keyframe restarts the IMU chain
+(velocity from the last two tracked frames, the last bias, loose priors); gravity and the map frame stay those
+of the initialisation. ``imu_state`` says "used" or "off" per frame (``FrameEstimate.imu``).
+
 Measured (``vslam bench``, synthetic room 300 frames 320x240, realistic IMU noise, one run each), 2026-11-23:
 stereo-inertial ATE 0.033 m vs stereo-only 0.080 m; RGB-D-inertial 0.026 m vs 0.100 m. 2026-12-01, after the
 vision side improved (RGB-D disparity noise model, sub-pixel stereo, stereo close-point keyframe rule):
@@ -40,18 +50,20 @@ covariance of the next oldest state is computed).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from vslam.backend.ba import BackendConfig, BAProblem, BAResult, StereoCamera
+from vslam.backend.ba import BackendConfig, BAProblem, BAResult, StereoCamera, local_bundle_adjustment
 from vslam.backend.inertial import (ImuChain, InertialBAConfig, initial_bias_covariance, prior_covariances,
                                     visual_inertial_bundle_adjustment)
-from vslam.data.types import Calibration, Frame, ImuSamples, SensorKind
+from vslam.data.types import Calibration, Frame, SensorKind
 from vslam.errors import ConfigError, InertialError
 from vslam.geometry.se3 import inv_T, make_T
+from vslam.inertial.buffer import ImuBuffer
 from vslam.inertial.config import InertialConfig
+from vslam.inertial.health import ImuHealth
 
 if TYPE_CHECKING:
     from vslam.mapping.map import Map
@@ -88,35 +100,10 @@ class VioConfig:
     # the alignments solve on keyframes at least this far apart (``vi_align(min_dt_s=)``: visual position noise
     # shrinks the scale when keyframes are close)
     align_min_dt_s: float = 0.3
-
-
-class ImuBuffer:
-    """All IMU samples received so far (IMU clock), trimmed from the front as the IMU chain slides."""
-
-    def __init__(self) -> None:
-        self.t = np.zeros(0)
-        self.gyro = np.zeros((0, 3))
-        self.accel = np.zeros((0, 3))
-
-    def add(self, s: ImuSamples | None) -> None:
-        if s is None or len(s) == 0:
-            return
-        new = s.t > (self.t[-1] if len(self.t) else -np.inf)  # a repeated frame carries no new samples
-        self.t = np.concatenate([self.t, s.t[new]])
-        self.gyro = np.concatenate([self.gyro, s.gyro[new]])
-        self.accel = np.concatenate([self.accel, s.accel[new]])
-
-    def trim(self, t_keep: float) -> None:
-        i = max(0, int(np.searchsorted(self.t, t_keep, side="left")) - 1)
-        self.t, self.gyro, self.accel = self.t[i:], self.gyro[i:], self.accel[i:]
-
-    def upto(self, t_end: float) -> ImuSamples:
-        """The samples, with the last one held to ``t_end`` when they stop short of it (the sample after a
-        frame arrives with the next frame; holding it for < 1 IMU period is the only choice online)."""
-        if len(self.t) and self.t[-1] < t_end:
-            return ImuSamples(np.append(self.t, t_end), np.vstack([self.gyro, self.gyro[-1:]]),
-                              np.vstack([self.accel, self.accel[-1:]]))
-        return ImuSamples(self.t, self.gyro, self.accel)
+    # velocity prior sigma (m/s) of the keyframe that restarts the IMU chain after a stretch without usable IMU
+    # data: its velocity is the mean over the last frame interval (``Vio._restart_chain``), off by up to
+    # |acceleration| x frame interval / 2 (0.15 m/s for 3 m/s^2 at 10 Hz)
+    restart_velocity_sigma: float = 0.2
 
 
 @dataclass
@@ -142,7 +129,16 @@ class Vio:
         self.params = make_params(self.noise, cfg.imu.gravity, None, cfg.imu.integration_sigma)
         self.T_bc = np.asarray(calibration.T_body_cam0, dtype=np.float64)
         self.T_cb = inv_T(self.T_bc)
-        self.buf = ImuBuffer()
+        # Monocular, the map's scale itself comes from the IMU: vision cannot arbitrate the IMU factors' consistency
+        self._ba_cfg = replace(cfg.ba, max_imu_chi2=float("inf")) if sensor == "mono" else cfg.ba
+        self.buf = ImuBuffer(cfg.imu)
+        self.health = ImuHealth(self.buf, cfg.imu.max_gap_s)
+        self.imu_state = ""  # of the last frame: "used" / "off" (FrameEstimate.imu)
+        self._chain_from = -np.inf  # IMU chains (and alignments) use keyframes from this IMU time on
+        self._restart = False  # good IMU data back after a stretch off: the next keyframe restarts the chain
+        self._restart_kf: int | None = None
+        self._last_bias: np.ndarray | None = None
+        self._tracked: list[tuple[float, np.ndarray]] = []  # (t, T_world_body) of the last two tracked frames
         self.ready = False
         self.method = ""  # "static" / "dynamic" once initialised
         self.nav: NavState | None = None
@@ -161,9 +157,29 @@ class Vio:
 
     # -- per frame ------------------------------------------------------------
     def add_imu(self, frame: Frame) -> None:
+        """Take the frame's IMU samples (gated) and whether they cover its interval (``vslam.inertial.health``):
+        ``imu_state`` "used", or "off" over a stretch of missing or rejected samples and until the chain restarts."""
         self.buf.add(frame.imu)
+        t = self.tc(frame.timestamp)
         if self._t_first is None:
-            self._t_first = self.tc(frame.timestamp)
+            self._t_first = t
+        change = self.health.frame(t)
+        if change == "off":  # no IMU prediction, no IMU factors until the data is back
+            self.nav, self._pred = None, None
+            self._chain_from, self._restart = np.inf, False
+            if not self.ready and not self._static_failed:
+                log.info("static IMU initialisation impossible: its window has a hole")
+                self._static_failed = True
+        elif change == "on":  # initialised: the next keyframe restarts the chain; else initialisation starts over
+            self._chain_from, self._restart = t, self.ready
+        if self.health.off:  # nothing to chain: keep only what the gate needs for context
+            self.buf.trim(t - 1.0)
+        gave_up = not self.ready and self._static_failed and self.cfg.init == "static"
+        self.imu_state = "off" if self.health.off or self._restart or gave_up else "used"
+
+    def finish(self) -> None:
+        """End of the run: the gate's and the IMU stream's warnings (``ImuHealth.finish``)."""
+        self.health.finish()
 
     def predict(self, t_cam: float) -> np.ndarray | None:
         """IMU-propagated T_world_cam (4,4) at camera time ``t_cam``, None before initialisation."""
@@ -177,7 +193,7 @@ class Vio:
         else:
             bias = make_bias(self.nav.bias[:3], self.nav.bias[3:])
             try:
-                pim = preintegrate(self.buf.upto(t), self.nav.t, t, self.params, bias)
+                pim = preintegrate(self.buf.upto(t), self.nav.t, t, self.params, bias, self.cfg.imu.max_gap_s)
             except InertialError as e:  # a hole in the IMU stream: no inertial prediction for this frame
                 log.warning("no IMU prediction at t=%.3f: %s", t, e)
                 self._pred = None
@@ -188,6 +204,8 @@ class Vio:
 
     def update(self, t_cam: float, T_world_cam: np.ndarray, tracked: bool) -> None:
         """The frame's final pose: vision's when tracked, else the prediction (kept as the state)."""
+        t = self.tc(t_cam)
+        self._tracked = (self._tracked + [(t, T_world_cam @ self.T_cb)])[-2:] if tracked else []
         if not self.ready or self._pred is None:
             return
         T_wb = T_world_cam @ self.T_cb if tracked else self._pred.T_world_body
@@ -203,19 +221,38 @@ class Vio:
 
     def new_keyframe(self, kf_id: int) -> None:
         """Give a fresh keyframe the current inertial state as its initial guess (before local BA)."""
-        if not self.ready or self.nav is None:
+        if not self.ready or self.health.off:
             return
         kf = self.map.keyframes[kf_id]
-        kf.velocity, kf.bias = self.nav.v.copy(), self.nav.bias.copy()
+        if self._restart:
+            self._restart_chain(kf)
+        elif self.nav is not None:
+            kf.velocity, kf.bias = self.nav.v.copy(), self.nav.bias.copy()
+
+    def _restart_chain(self, kf) -> None:
+        """The first keyframe after a stretch without usable IMU data (or after a dropped IMU factor) starts a new
+        IMU chain: velocity from the two last tracked frames (vision alone: the IMU around the restart may be what
+        was bad), bias the last one estimated; both under loose priors in the chain's first VI BA
+        (``restart_velocity_sigma``, the initial bias sigmas), where the IMU factor soon dominates them."""
+        if len(self._tracked) < 2 or self._last_bias is None:
+            return  # the next keyframe will
+        (t0, T0), (t1, T1) = self._tracked
+        kf.velocity = (T1[:3, 3] - T0[:3, 3]) / (t1 - t0)
+        kf.bias = self._last_bias.copy()
+        self._restart, self._restart_kf = False, kf.id
+        self._chain_from = self.tc(kf.timestamp)
+        log.info("IMU chain restarted at keyframe %d (t=%.3f s), velocity %s m/s", kf.id, self._chain_from,
+                 np.round(kf.velocity, 3))
 
     def after_keyframe(self, kf_id: int) -> None:
         """Local BA has run: restart propagation from the keyframe's optimised state; trim the buffer."""
         if not self.ready:
             return
         kf = self.map.keyframes[kf_id]
-        if kf.velocity is None or kf.bias is None:
+        if kf.velocity is None or kf.bias is None or self.tc(kf.timestamp) < self._chain_from:
             return
         self.nav = NavState(self.tc(kf.timestamp), kf.T_world_cam @ self.T_cb, kf.velocity.copy(), kf.bias.copy())
+        self._last_bias = kf.bias.copy()
         ids = self.chain()
         if ids:  # keep what the IMU chain and a later refinement need
             keep = self.tc(self.map.keyframes[ids[0]].timestamp)
@@ -228,7 +265,7 @@ class Vio:
         state and IMU samples still in the buffer, in time order."""
         if not self.ready or len(self.buf.t) == 0:
             return []
-        t0 = float(self.buf.t[0])
+        t0 = max(float(self.buf.t[0]), self._chain_from)
         ids = sorted(k for k, kf in self.map.keyframes.items() if kf.velocity is not None and self.tc(kf.timestamp) >= t0)
         return ids if self.full_chain else ids[-self.cfg.ba.chain:]
 
@@ -239,13 +276,27 @@ class Vio:
         kfs = [self.map.keyframes[k] for k in ids]
         stamps = np.array([self.tc(kf.timestamp) for kf in kfs])
         cov_v, cov_b = prior_covariances(self.marginals.get(ids[0]), self.cfg.ba)
-        if ids[0] not in self.marginals:  # never optimised as a middle state: the initialisation prior
-            cov_v = np.eye(3) * self.cfg.imu.prior_velocity_sigma**2
+        if ids[0] not in self.marginals:  # never optimised as a middle state: the initialisation (or restart) prior
+            sigma_v = self.cfg.restart_velocity_sigma if ids[0] == self._restart_kf else self.cfg.imu.prior_velocity_sigma
+            cov_v = np.eye(3) * sigma_v**2
             cov_b = initial_bias_covariance(self.cfg.imu.prior_accel_bias_sigma, self.cfg.imu.prior_gyro_bias_sigma)
         chain = ImuChain(np.array(ids), stamps, np.array([kf.velocity for kf in kfs]), np.array([kf.bias for kf in kfs]),
-                         self.buf.upto(float(stamps[-1])), self.params, self.T_bc, cov_v, cov_b)
-        res = visual_inertial_bundle_adjustment(problem, chain, camera, backend, self.cfg.ba,
-                                                marginal_for=ids[1] if len(ids) > 1 else None)
+                         self.buf.upto(float(stamps[-1])), self.params, self.T_bc, cov_v, cov_b, self.cfg.imu.max_gap_s)
+        try:
+            res = visual_inertial_bundle_adjustment(problem, chain, camera, backend, self._ba_cfg,
+                                                    marginal_for=ids[1] if len(ids) > 1 else None)
+        except InertialError as e:  # the per-frame coverage test should have turned the chain off before this
+            log.warning("VI BA impossible (%s); visual-only BA, the IMU chain restarts at the next keyframe", e)
+            self._chain_from, self._restart, self.nav, self._pred = np.inf, True, None, None
+            return local_bundle_adjustment(problem, camera, backend)
+        log.debug("IMU factor chi2 %s", {k: round(v, 1) for k, v in res.imu_chi2.items()})
+        for i, j, chi2 in res.dropped:  # the stretch is off: the chain starts again at the next keyframe
+            log.warning("IMU factor between keyframes %d and %d (t=%.3f to %.3f s) disagrees with vision (chi2 %.0f > "
+                        "%.0f): dropped; no IMU prediction or factors until the chain restarts at the next keyframe",
+                        i, j, self.tc(self.map.keyframes[i].timestamp), self.tc(self.map.keyframes[j].timestamp), chi2,
+                        self.cfg.ba.max_imu_chi2)
+        if res.dropped:
+            self._chain_from, self._restart, self.nav, self._pred = np.inf, True, None, None
         for k in ids:
             self.map.keyframes[k].velocity = res.velocity[k]
             self.map.keyframes[k].bias = res.bias[k]
@@ -285,7 +336,7 @@ class Vio:
         if t1 - t0 < min(0.5, c.static_window_s):  # a motion test needs a few hundred ms
             return None
         try:
-            st = static_init(ImuSamples(self.buf.t, self.buf.gyro, self.buf.accel), t0, t1, c.gravity,
+            st = static_init(self.buf.samples(), t0, t1, c.gravity,
                              c.still_accel_std, c.still_gyro_std, smooth_s=c.still_smooth_s,
                              max_force_error=c.still_max_force_error)
         except InertialError as e:
@@ -313,8 +364,9 @@ class Vio:
     def _try_dynamic(self) -> tuple[np.ndarray, float] | None:
         from vslam.inertial.init import vi_align
 
-        kfs = sorted(self.map.keyframes.values(), key=lambda k: k.timestamp)
-        if len(kfs) < self.cfg.align_keyframes or kfs[-1].timestamp - kfs[0].timestamp < self.cfg.align_min_span_s:
+        kfs = sorted((k for k in self.map.keyframes.values() if self.tc(k.timestamp) >= self._chain_from),
+                     key=lambda k: k.timestamp)
+        if not kfs or len(kfs) < self.cfg.align_keyframes or kfs[-1].timestamp - kfs[0].timestamp < self.cfg.align_min_span_s:
             return None
         if len(kfs) == self._align_tried:  # same keyframes as the last failed try: same answer
             return None
@@ -351,7 +403,7 @@ class Vio:
         t_end = self.tc(self.map.keyframes[max(self.map.keyframes)].timestamp)
         kfs = [k for k in sorted(self.map.keyframes.values(), key=lambda k: k.timestamp)
                if k.velocity is not None and self.tc(k.timestamp) >= t_end - self.cfg.refine_window_s
-               and self.tc(k.timestamp) >= self.buf.t[0]]
+               and self.tc(k.timestamp) >= max(self.buf.t[0], self._chain_from)]
         if len(kfs) < self.cfg.align_keyframes:
             return None
         stamps = np.array([self.tc(k.timestamp) for k in kfs])
@@ -383,10 +435,12 @@ class Vio:
         transform_map(self.map, T, scale)
         self.params.n_gravity = T[:3, :3] @ gravity
         self.gravity = self.params.n_gravity
-        for k, kf in self.map.keyframes.items():
-            kf.velocity = np.asarray(velocity[k], dtype=np.float64).copy()
+        for k, v in velocity.items():  # (keyframes before a stretch without IMU data have none)
+            kf = self.map.keyframes[k]
+            kf.velocity = np.asarray(v, dtype=np.float64).copy()
             kf.bias = bias.copy()
         self.ready, self.method, self.scale = True, method, scale
+        self._last_bias = bias.copy()
         self._t_init = self.tc(self.map.keyframes[max(self.map.keyframes)].timestamp)
         last = self.map.keyframes[max(self.map.keyframes)]
         self.nav = NavState(self.tc(last.timestamp), last.T_world_cam @ self.T_cb, last.velocity.copy(), bias.copy())
