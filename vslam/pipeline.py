@@ -338,6 +338,8 @@ class Pipeline:
         poses: list[np.ndarray] = []
         tracked: list[bool] = []
         map_ids: list[int] = []  # the map each written pose is in (``vslam.tracking.atlas``)
+        unposed: list[tuple[float, int]] = []  # (time, index) of frames with no pose: before a map, between maps
+        backfill_map: dict[int, int] = {}
         stats: list[dict[str, float]] = []
         stats_path = out / "stats.csv"
         paths["stats"] = stats_path
@@ -388,7 +390,10 @@ class Pipeline:
                     fstats.flush()
                     stats.append(row)
                     backfill.update(est.backfill)
-                    if est.has_pose:
+                    backfill_map.update({i: est.map_id for i in est.backfill})
+                    if not est.has_pose:
+                        unposed.append((frame.timestamp, frame.index))
+                    else:
                         stamps.append(frame.timestamp)
                         indices.append(frame.index)
                         poses.append(est.T_world_cam)
@@ -403,20 +408,24 @@ class Pipeline:
                 child.close()
         seconds = time.perf_counter() - t_start
         paths.update(odo.finish(out))  # keyframes and map (SLAM); nothing for the baseline
-        # a loop closure or a monocular inertial rescale moved the keyframes: every frame follows its own
+        # monocular frames seen before the map existed (no pose then): localised once it did, they join the
+        # final trajectory in time order
+        late = [(t, i) for t, i in unposed if i in backfill]
+        if late:
+            stamps += [t for t, _ in late]
+            indices += [i for _, i in late]
+            poses += [backfill[i] for _, i in late]
+            tracked += [True] * len(late)
+            map_ids += [backfill_map[i] for _, i in late]
+            order = np.argsort(np.array(stamps), kind="stable")
+            stamps, indices, poses, tracked, map_ids = ([x[j] for j in order] for x in (stamps, indices, poses,
+                                                                                         tracked, map_ids))
+            log.info("%d frames before the monocular initialisation localised afterwards", len(late))
+        # a loop closure, a merge or a monocular inertial rescale moved the keyframes: every frame follows its own
         final = odo.final_poses(indices) if hasattr(odo, "final_poses") and len(poses) else None
         if final is not None:
             poses = list(final)
-            paths["trajectory_final"] = write_trajectory(out / "trajectory_final.tum.txt",
-                                                         Trajectory(np.array(stamps), np.array(poses)), "tum")
-        if backfill and len(poses):  # monocular frames before the map, localised once it existed
-            at = {idx: i for i, idx in enumerate(indices)}
-            for idx, T in backfill.items():
-                if idx in at:
-                    tracked[at[idx]] = True
-                    if final is None:  # (else they are in ``final`` already, through the first keyframe)
-                        poses[at[idx]] = T
-            log.info("%d frames before the monocular initialisation localised afterwards", len(backfill))
+        if final is not None or late:
             paths["trajectory_final"] = write_trajectory(out / "trajectory_final.tum.txt",
                                                          Trajectory(np.array(stamps), np.array(poses)), "tum")
         # maps never merged into one another: each frame's pose is in its own map's frame
@@ -436,9 +445,9 @@ class Pipeline:
         result = RunResult(traj, np.array(tracked, bool), stats, None, paths, seconds)
         result.map_ids = final_ids
         if stats and not any(tracked):
-            # Placeholder poses only (no map was ever made): written, as every frame gets a line, but not a result.
+            # no map was ever made (or only predicted poses): not a result, whatever was written
             result.error = TrackingError(
-                f"no frame of {len(stats)} was tracked: {paths.get('trajectory_tum', out)} holds placeholder poses "
+                f"no frame of {len(stats)} was tracked: {paths.get('trajectory_tum', out)} holds no measured pose "
                 f"(status per frame in {stats_path}); check the sensor, the calibration and slam.features")
         elif cfg.eval.enabled:
             try:

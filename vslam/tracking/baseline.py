@@ -80,8 +80,9 @@ class FrameEstimate:
 
     @property
     def has_pose(self) -> bool:
-        """False for a frame between two maps (status "lost"): it is left out of the trajectory."""
-        return self.status_name != "lost"
+        """False for a frame before any map ("uninitialised") or between two maps ("lost"): it is left out of
+        the trajectory (a placeholder would read as a measured pose), and listed in stats.csv."""
+        return self.status_name not in ("lost", "uninitialised")
 
     def pose_std(self) -> tuple[float, float]:
         """(position std m, rotation std deg) from ``pose_cov``: sqrt of the traces; NaN when unknown."""

@@ -1,4 +1,4 @@
-"""The SLAM system for one sequence: tracking + local mapping over one map.
+"""The SLAM system for one sequence: tracking + local mapping, a new map when tracking is lost (``Atlas``).
 
 ``SlamTracker(calibration, sensor, cfg).track(frame)`` returns the same
 ``FrameEstimate`` as the baseline odometry, so the pipeline swaps them by
@@ -31,7 +31,9 @@ from vslam.loop.config import LoopConfig
 from vslam.mapping.line_map import LineSlam
 from vslam.mapping.local_mapping import LocalMapper, MappingConfig
 from vslam.mapping.map import Map
+from vslam.tracking.atlas import Atlas, AtlasConfig
 from vslam.tracking.baseline import FrameEstimate
+from vslam.tracking.dense import DenseConfig, DenseOdometry
 from vslam.tracking.frame_log import FrameLog
 from vslam.tracking.initializer import InitConfig
 from vslam.tracking.mono_init import MonoInitializer
@@ -59,6 +61,9 @@ class SlamConfig:
     inertial: VioConfig = field(default_factory=VioConfig)  # visual-inertial mode (vslam.tracking.vio), off by default
     lines: LineConfig = field(default_factory=LineConfig)  # point + Plücker-line features (issue 6), off by default
     dynamic: DynamicConfig = field(default_factory=DynamicConfig)  # dynamic-object filtering (issue 5), off by default
+    dense: DenseConfig = field(default_factory=DenseConfig)  # RGB-D: depth ICP where features fail (issue 38, vslam.tracking.dense)
+    # tracking lost: a new map, and maps merged where they meet (issue 38; ``vslam.tracking.atlas``)
+    atlas: AtlasConfig = field(default_factory=AtlasConfig)
     # Keypoints, line segments, keypoint depth and detector boxes depend on the image alone: ``vslam run``
     # computes them for the next frames on its prefetch thread while this one is tracked (OpenCV / torch release
     # the GIL, so it uses a second core). Same numbers either way; off = everything on the tracking thread.
@@ -145,6 +150,7 @@ class SlamTracker:
         self.mono_init = MonoInitializer(self.cam, cfg.init) if sensor == "mono" else None
         self.vio = Vio(calibration, sensor, cfg.inertial, self.map) if cfg.inertial.enabled else None
         self.dynamic = DynamicFilter(cfg.dynamic, self.cam) if cfg.dynamic.enabled else None
+        self.dense = DenseOdometry(self.cam, cfg.dense) if sensor == "rgbd" and cfg.dense.enabled else None
         self.mapper.inertial = self.vio
         self.lines = (LineSlam(self.map, self.cam, self.stereo_cam, sensor, cfg.lines, cfg.backend, calibration)
                       if cfg.lines.enabled else None)
@@ -155,6 +161,11 @@ class SlamTracker:
         self._lines_pool = ThreadPoolExecutor(1, thread_name_prefix="lines") if self.lines is not None and beside else None
         self._line_feats, self._line_ids = None, None
         self._pre_init_lines: dict[int, LineFeatures] = {}  # monocular: segments of frames before the map exists
+        # New maps need a map to grow (not localize_only) and a pose that the IMU state does not pin to the old
+        # map (visual-inertial: the IMU bridges the blackout instead; re-initialising it per map is not built).
+        self.map_id = 0
+        self.atlas = (Atlas(cfg.atlas, self.cam, self.stereo_cam, cfg.tracking, cfg.backend)
+                      if cfg.atlas.enabled and not cfg.localize_only and self.vio is None else None)
         self.loop = None
         if cfg.loop.enabled or cfg.load_map:
             from vslam.loop.closing import LoopCloser, attach_saved_map
@@ -163,6 +174,8 @@ class SlamTracker:
             self.loop.frames = self.frames
             if cfg.load_map:  # the saved map replaces the empty one everywhere it is referenced
                 attach_saved_map(self, cfg.load_map)
+        self._t_tracked: float | None = None  # time of the last tracked frame
+        self._restart: np.ndarray | None = None  # a map was lost and no new one started yet: the pose it starts at
         self.T_world_cam = np.eye(4)
         self.velocity = np.eye(4)  # T_prev_cur of the last tracked step
         self.ref_kf: int | None = None
@@ -253,11 +266,21 @@ class SlamTracker:
             ms_flush = ms_map["flush"]
         t2 = time.perf_counter()
         est = FrameEstimate(self.T_world_cam, tracked=False, n_features=len(feats))
+        if self.vio is not None:
+            est.imu = self.vio.imu_state
         if self.ref_kf is None:
-            est.tracked = self._initialize(frame, feats, depth, ur)
+            est.tracked = self._initialize(frame, feats, depth, ur, self._restart)
             if self.dynamic is not None:
                 self.dynamic.observe(self.T_world_cam, est.tracked)
             est.status = "tracked" if est.tracked else "uninitialised"
+            if self._restart is not None:
+                # between two maps: no pose was measured ("lost", the last one held), or the new map starts here
+                est.status = "new_map" if est.tracked else "lost"
+                if est.tracked:
+                    self._restart = None
+                    est.pose_cov = np.zeros((6, 6))
+                    if self.atlas.maps and self.sensor != "mono":  # type: ignore[union-attr]
+                        self._try_merge(self.map.keyframes[self.ref_kf], frame.image)
             if self.mono_init is not None and self.cfg.backfill and not self.cfg.load_map:  # saved keyframes are not this run's frames
                 if est.tracked:
                     est.backfill = self._backfill()
@@ -278,6 +301,8 @@ class SlamTracker:
             if res.ok and self.lines is not None:  # issue 6: the pose on points + matched map lines
                 res.T_world_cam, self._line_ids = self.lines.refine_tracked(
                     res.T_world_cam, res.point_ids, feats, ur, self._line_feats, self.ref_kf, self.cfg.tracking.local_keyframes)
+            if not res.ok and self.dense is not None:  # too few features (issue 38): ICP of the depth against the keyframe's
+                res = self.dense.track_frame(frame, T_pred, self.map, len(feats)) or res
             est.n_matches, est.n_inliers, est.tracked = res.n_matches, res.n_inliers, res.ok
             est.status, est.pose_cov = self._status(res.ok, res.method, depth), res.cov
             if res.ok:
@@ -287,8 +312,17 @@ class SlamTracker:
                 self.ref_kf = self.tracker.best_reference(res.point_ids, self.ref_kf)
                 self._last_ids = res.point_ids[res.point_ids >= 0]
             else:
+                T_last = self.T_world_cam
                 self.T_world_cam = T_pred
                 log.debug("frame %d not tracked; pose predicted", frame.index)
+                lost_s = self._lost_for(frame.timestamp)
+                if lost_s >= self.cfg.atlas.new_map_after_s:
+                    # near where the camera was last seen: the new map's frame continues the old one's
+                    if self._new_map(frame, feats, depth, ur, T_last):
+                        est.tracked, est.status, est.pose_cov = True, "new_map", np.zeros((6, 6))
+                    elif lost_s > self.cfg.atlas.bridge_s or self._restart is not None:
+                        est.status = "lost"  # predicted no longer: no pose
+                        self.T_world_cam = T_last
             if self.vio is not None:
                 self.vio.update(frame.timestamp, self.T_world_cam, res.ok)
             if self.dynamic is not None:
@@ -306,6 +340,8 @@ class SlamTracker:
                 want = self._want_keyframe(frame, res.n_inliers, res.point_ids, depth) or vio_kf
             if want:
                 kf = self.map.add_keyframe(frame.index, frame.timestamp, self.T_world_cam, feats, depth, ur)
+                if self.dense is not None:
+                    self.dense.set_reference(kf.id, kf.T_world_cam, frame.depth, frame.image)
                 if self.vio is not None:
                     self.vio.new_keyframe(kf.id)
                 if self.lines is not None:
@@ -320,9 +356,14 @@ class SlamTracker:
                     ms_map = _add_ms(ms_map, self._loop_step(kf, frame.image))
                 # local BA (and a loop correction) moved the keyframe: the frame's pose follows it
                 self.T_world_cam = kf.T_world_cam.copy()
+                if self.atlas is not None and self.atlas.maps and self.sensor != "mono":
+                    ms_map = _add_ms(ms_map, self._try_merge(kf, frame.image))
         if self.vio is not None:
             self._init_inertial()
         t4 = time.perf_counter()
+        if est.tracked:
+            self._t_tracked = frame.timestamp
+        est.map_id = self.map_id
         self._prev_tracked = est.tracked
         self._n_frames += 1
         est.T_world_cam = self.T_world_cam.copy()
@@ -431,7 +472,10 @@ class SlamTracker:
             self.frames.record(idx, kf0.id, T)
         return out
 
-    def _initialize(self, frame: Frame, feats: Features, depth: np.ndarray, ur: np.ndarray) -> bool:
+    def _initialize(self, frame: Frame, feats: Features, depth: np.ndarray, ur: np.ndarray,
+                    T0: np.ndarray | None = None) -> bool:
+        """Start the map (RGB-D / stereo: this frame's depth, its keyframe at ``T0``, the identity for the first
+        map; monocular: the two-view initialiser)."""
         if self.cfg.load_map:  # a saved map: the first frame is placed in it by place recognition
             res = self.loop.relocalise(self.tracker, feats, ur, frame.image)  # type: ignore[union-attr]
             if res is None:
@@ -457,21 +501,133 @@ class SlamTracker:
             return True
         if int(np.isfinite(depth).sum()) < self.cfg.tracking.min_depth_points:
             return False
-        kf = self.map.add_keyframe(frame.index, frame.timestamp, np.eye(4), feats, depth, ur)
+        T0 = np.eye(4) if T0 is None else T0
+        kf = self.map.add_keyframe(frame.index, frame.timestamp, T0, feats, depth, ur)
+        if self.dense is not None:
+            self.dense.set_reference(kf.id, kf.T_world_cam, frame.depth, frame.image)
         if self.lines is not None:
             self.lines.add_keyframe(kf.id, kf.T_world_cam, self._line_feats, None, self._line_depth(frame))
         self.mapper.process(kf, np.full(len(feats), -1, np.int64))
         if self.loop is not None:
             self.loop.add_keyframe(kf, frame.image)
         self.ref_kf, self.last_kf_frame = kf.id, self._n_frames
+        self.T_world_cam = T0.copy()
         return True
+
+    # -- several maps (``vslam.tracking.atlas``) -----------------------------------
+    def _lost_for(self, t: float) -> float:
+        """Seconds since the last tracked frame; 0 while a new map cannot be made (no Atlas)."""
+        return 0.0 if self.atlas is None or self._t_tracked is None else t - self._t_tracked
+
+    def _use_map(self, m: Map) -> None:
+        """Make ``m`` the map every stage works on."""
+        self.map = self.tracker.map = self.mapper.map = self.frames.map = m
+        self.mapper.recent = [p for p in self.mapper.recent if p in m.points]
+        self._last_ids = None
+        if self.loop is not None:
+            self.loop.map = m
+        if self.lines is not None:  # lines live in one map: the new map grows its own
+            self.lines = LineSlam(m, self.cam, self.stereo_cam, self.sensor, self.cfg.lines, self.cfg.backend, self.calib)
+            self.mapper.lines = self.lines
+
+    def _new_map(self, frame: Frame, feats: Features, depth: np.ndarray, ur: np.ndarray, T0: np.ndarray) -> bool:
+        """Archive the current map and start a new one: at once from this frame's depth (RGB-D / stereo; -> True
+        when it did), at the next two-view initialisation (monocular)."""
+        atlas = self.atlas
+        assert atlas is not None
+        if self.mono_init is None and int(np.isfinite(depth).sum()) < atlas.cfg.min_points:
+            return False  # not enough depth for a map worth keeping (blur, a black frame): stay on the old one
+        if self._pending is not None:
+            self._flush_mapping()
+        if atlas.descriptor is None and atlas.cfg.merge and self.sensor != "mono":
+            atlas.descriptor = self._place_descriptor()
+        if self.map.keyframes:
+            old_db = self.loop.db if self.loop is not None else None
+            atlas.archive(self.map_id, self.map, old_db)
+            self.frames.archived[self.map_id] = self.map
+            self.map_id = atlas.new_id()
+        if self.loop is not None:
+            from vslam.loop.database import KeyframeDatabase
+
+            self.loop.db = KeyframeDatabase(self.loop.descriptor.dim)
+            self.loop._groups = []
+        self._use_map(self.map.successor())
+        self.ref_kf, self.velocity, self._t_tracked = None, np.eye(4), None
+        log.info("frame %d: tracking lost; map %d started", frame.index, self.map_id)
+        if self.mono_init is None:
+            return self._initialize(frame, feats, depth, ur, T0)
+        self.mono_init = MonoInitializer(self.cam, self.cfg.init)
+        self._pre_init = []
+        self._restart = T0  # monocular: the next two-view initialisation starts the map (``track``)
+        return False
+
+    def _place_descriptor(self):
+        """The keyframes' place descriptor for merging: the loop closer's, else the bag of words over ORB
+        descriptors (None for learned float descriptors without the loop closer: maps are then never merged)."""
+        if self.loop is not None:
+            return self.loop.descriptor
+        if self.extractor.descriptor_kind != "binary":
+            log.warning("slam.atlas.merge needs slam.loop.enabled with learned keypoints; maps will not be merged")
+            return None
+        from vslam.loop.descriptor import make_place_descriptor
+
+        return make_place_descriptor("bow", self.cfg.loop.vocabulary)
+
+    def _try_merge(self, kf, image: np.ndarray) -> dict[str, float]:
+        """Look for the new keyframe in the archived maps; on a confirmed match move this map into that one."""
+        t = time.perf_counter()
+        atlas = self.atlas
+        assert atlas is not None
+        vec = (self.loop.db.vector(kf.id) if self.loop is not None and kf.id in self.loop.db
+               else atlas.describe(kf.features, image))
+        hit = atlas.locate(kf.features, kf.ur, vec)
+        if hit is not None:
+            self._merge(kf, *hit)
+        return {"merge": (time.perf_counter() - t) * 1e3}
+
+    def _merge(self, kf, old_id: int, cand: int, res: TrackResult) -> None:
+        """The current map joins archived map ``old_id``: moved rigidly by the transform the keyframe's two poses
+        give, the seam's duplicate points fused into the keyframe and its neighbours, then a local BA."""
+        atlas = self.atlas
+        assert atlas is not None
+        T_old_new = res.T_world_cam @ inv_T(kf.T_world_cam)
+        old, old_db = atlas.take(old_id)
+        new, new_id = self.map, self.map_id
+        old.absorb(new, T_old_new)
+        if self.loop is not None and old_db is not None:  # one database for the merged map
+            for k in old_db.ids().tolist():
+                self.loop.db.add(k, old_db.vector(k))
+        self._use_map(old)
+        self.frames.archived.pop(old_id, None)
+        self.frames.moved = True  # the frames of the merged map are re-expressed in the old map's frame
+        atlas.parent[new_id] = old_id
+        atlas.merges.append((new_id, old_id, kf.id, cand))
+        self.map_id = old_id
+        # the keyframe's keypoints that matched the old map's points: those points, fused with the new ones
+        for kp in np.flatnonzero(res.point_ids >= 0):
+            pid, mine = int(res.point_ids[kp]), int(kf.point_ids[kp])
+            if pid not in old.points:
+                continue
+            if mine < 0:
+                old.add_observation(pid, kf.id, int(kp))
+            elif mine != pid and mine in old.points:
+                old.merge_points(pid, mine)
+        _, seam = old.local_map(cand, self.cfg.tracking.local_keyframes)
+        for k in [kf.id, *old.covisible_keyframes(kf.id, 1, self.cfg.mapping.fuse_neighbors)]:
+            self.mapper._fuse_into(old.keyframes[k], seam)
+        old.update_descriptors(np.unique(kf.point_ids[kf.point_ids >= 0]))
+        if len(old.keyframes) >= 2:
+            self.mapper.bundle_adjust(kf.id)
+        self.T_world_cam = kf.T_world_cam.copy()
+        log.info("map %d merged into map %d (keyframe %d seen in keyframe %d, %d inliers)", new_id, old_id, kf.id,
+                 cand, res.n_inliers)
 
     def _status(self, ok: bool, method: str, depth: np.ndarray) -> str:
         """FrameEstimate.status of a frame after initialisation (see there)."""
         if not ok:
             return "predicted"
-        if method == "relocalised":
-            return "relocalised"
+        if method in ("relocalised", "dense"):  # dense: the depth ICP of vslam.tracking.dense
+            return method
         if self.sensor != "mono" and int(np.isfinite(depth).sum()) < self.cfg.tracking.min_depth_points:
             return "no_depth"  # measured from 2-D matches only: weaker, and the frame cannot become a keyframe
         return "tracked"
@@ -504,6 +660,12 @@ class SlamTracker:
         moved = self.frames.moved or (self.loop is not None and self.loop.stats.corrected > 0)
         return self.frames.poses(frame_indices) if moved else None
 
+    def final_map_ids(self, map_ids: list[int]) -> list[int]:
+        """The map each of ``map_ids`` (the frames' maps when tracked) ended in after the merges."""
+        if self.atlas is None:
+            return list(map_ids)
+        return [self.atlas.final_id(m) for m in map_ids]
+
     def finish(self, out_dir: str | Path) -> dict[str, Path]:
         """Write ``keyframes.tum.txt`` (optimised keyframe poses) and ``map.ply`` (map points, world frame);
         with lines on also ``map_lines.ply`` (line set: two end points per map line)."""
@@ -514,6 +676,8 @@ class SlamTracker:
         if self._pending is not None:
             self._flush_mapping()
         self.mapper.close()
+        if self.vio is not None:
+            self.vio.finish()
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         kfs = sorted(self.map.keyframes.values(), key=lambda k: k.timestamp)
