@@ -187,7 +187,8 @@ def prefetch(seq: Sequence, n: int, depth: int = 3,
 # map the frame's pose is in (issue 38: a new map when tracking is lost; see ``vslam.tracking.atlas``).
 # ms_map_*: the local-mapping sub-stages, blank on frames that made no keyframe. n_lines / n_line_inliers:
 # segments detected / map lines kept by the pose refinement, blank without line features.
-# imu: "used" / "off" (no usable IMU samples over this stretch: visual-only), blank without an IMU.
+# imu: "used" / "off" (visual-only: no usable IMU samples over this stretch, an IMU factor dropped as
+# inconsistent with vision, or until the keyframe that restarts the IMU chain), blank without an IMU.
 # ms_detector: the dynamic-object detector (slam.dynamic.source=detector), blank otherwise.
 STAT_COLUMNS = ("index", "timestamp", "map_id", "tracked", "status", "uncertain", "pose_std_m", "pose_std_deg", "n_features",
                 "n_matches", "n_inliers", "n_lines", "n_line_inliers", "imu", "ms_decode", "ms_features", "ms_detector",

@@ -66,7 +66,8 @@ class FrameEstimate:
     # poses of earlier frames measured late, by frame index (monocular frames before the map existed)
     backfill: dict[int, np.ndarray] = field(default_factory=dict)
     # the IMU on this frame (visual-inertial runs): "used", "off" (inertial factors off: samples missing or
-    # rejected over this stretch), "" without an IMU
+    # rejected over this stretch, an IMU factor dropped as inconsistent with vision, or waiting for the keyframe
+    # that restarts the IMU chain; ``vslam.inertial.health``), "" without an IMU
     imu: str = ""
 
     @property
