@@ -92,6 +92,37 @@ def test_a_keyframe_of_a_moved_copy_is_located_with_the_known_transform(room_tra
     assert np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))) < 0.1
 
 
+def test_a_scaled_moved_copy_gives_the_similarity_back(room_tracker):
+    """Monocular maps have a unit of their own: a copy of the map at half scale, rotated and moved, is located
+    in the original and the similarity between them recovered (scale to 0.1 %, 1 mm, 0.1 deg)."""
+    st = room_tracker
+    atlas = Atlas(st.cfg.atlas, st.cam, st.stereo_cam, st.cfg.tracking, st.cfg.backend, make_place_descriptor("bow"))
+    atlas.archive(0, st.map)
+    s_true, R_true, t_true = 0.5, _rot_z(-40.0), np.array([0.3, -1.2, 0.5])  # x_new = s R x_old + t
+    new = copy.deepcopy(st.map)
+    for kf in new.keyframes.values():
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R_true @ kf.T_world_cam[:3, :3], s_true * (R_true @ kf.T_world_cam[:3, 3]) + t_true
+        kf.T_world_cam = T
+    for mp in new.points.values():
+        mp.xyz = s_true * (R_true @ mp.xyz) + t_true
+    kf = new.keyframes[max(new.keyframes)]
+    nan = np.full(len(kf.features), np.nan)  # monocular: no depth in the measurements
+    hit = atlas.locate(kf.features, nan, atlas.describe(kf.features))
+    assert hit is not None
+    _, _, res = hit
+    scale = atlas.scale(st.map, new, kf, res)
+    assert scale == pytest.approx(1 / s_true, rel=1e-3)
+    T = atlas.old_from_new(kf.T_world_cam, res.T_world_cam, scale)  # x_old = scale R x_new + t
+    assert np.degrees(np.arccos(np.clip((np.trace(T[:3, :3] @ R_true) - 1) / 2, -1, 1))) < 0.1
+    merged = Map()
+    merged.absorb(new, T, scale)  # every keyframe and point lands on its original
+    for k, f in st.map.keyframes.items():
+        assert np.linalg.norm(merged.keyframes[k].T_world_cam[:3, 3] - f.T_world_cam[:3, 3]) < 1e-3
+    for p, mp in st.map.points.items():
+        np.testing.assert_allclose(merged.points[p].xyz, mp.xyz, atol=3e-3)
+
+
 def test_no_candidate_in_an_unrelated_map(room_tracker):
     """A keyframe of another scene (the street) is not located in the room's map: no merge on weak evidence."""
     st = room_tracker

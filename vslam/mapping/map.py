@@ -86,15 +86,21 @@ class Map:
         m._next_kf, m._next_pt = self._next_kf, self._next_pt
         return m
 
-    def absorb(self, other: Map, T_this_other: np.ndarray) -> None:
-        """Move every keyframe and point of ``other`` into this map, expressed in this map's frame (x <- T x);
-        ``other`` is left empty. The two maps share no observation yet: the caller fuses the seam."""
+    def absorb(self, other: Map, T_this_other: np.ndarray, scale: float = 1.0) -> None:
+        """Move every keyframe and point of ``other`` into this map, expressed in this map's frame (x <- s R x + t:
+        ``scale`` for a monocular map, whose unit is its own); ``other`` is left empty. The two maps share no
+        observation yet: the caller fuses the seam."""
         R, t = T_this_other[:3, :3], T_this_other[:3, 3]
         for k, kf in other.keyframes.items():
-            kf.T_world_cam = T_this_other @ kf.T_world_cam
+            T = np.eye(4)
+            T[:3, :3] = R @ kf.T_world_cam[:3, :3]
+            T[:3, 3] = scale * (R @ kf.T_world_cam[:3, 3]) + t
+            kf.T_world_cam = T
+            if scale != 1.0:
+                kf.depth = kf.depth * scale
             self.keyframes[k] = kf
         for p, mp in other.points.items():
-            mp.xyz = R @ mp.xyz + t
+            mp.xyz = scale * (R @ mp.xyz) + t
             self.points[p] = mp
         self._next_kf = max(self._next_kf, other._next_kf)
         self._next_pt = max(self._next_pt, other._next_pt)

@@ -8,8 +8,8 @@ looked for in the archived maps by its place descriptor (bag of words over its O
 closer's database when that is on); a candidate confirmed by descriptor matching + PnP against that map's
 points (``Tracker.track_keyframe``, the relocalisation step) gives the rigid transform between the two maps,
 and the current map is moved into the old one (``Map.absorb``): the seam's duplicate points are fused and a
-local BA welds it (``SlamTracker._merge``). Monocular maps are not merged: their relative scale needs a Sim3
-alignment, which is not built yet.
+local BA welds it (``SlamTracker._merge``). Monocular maps have a unit of their own each: the transform is a
+similarity, its scale the median depth ratio of the keypoints' points in the two maps (``Atlas.scale``).
 """
 
 from __future__ import annotations
@@ -117,6 +117,33 @@ class Atlas:
                 if res is not None and res.ok and res.n_inliers >= self.cfg.merge_min_inliers:
                     return map_id, cand, res
         return None
+
+    @staticmethod
+    def old_from_new(T_new: np.ndarray, T_old: np.ndarray, scale: float = 1.0) -> np.ndarray:
+        """(R, t) of the similarity x_old = scale R x_new + t that takes a camera at ``T_new`` in the new map to
+        ``T_old`` in the old one, as a 4x4 (its rotation and translation; the scale apart)."""
+        T = np.eye(4)
+        T[:3, :3] = T_old[:3, :3] @ T_new[:3, :3].T
+        T[:3, 3] = T_old[:3, 3] - scale * (T[:3, :3] @ T_new[:3, 3])
+        return T
+
+    @staticmethod
+    def scale(old: Map, new: Map, kf, res: TrackResult, min_points: int = 20) -> float | None:
+        """Monocular: length in the old map per length in the new one -- the median ratio of the depths, in the
+        keyframe's camera, of the same keypoints' two points (the old map's at the located pose, the new map's
+        at the keyframe's own pose; as ``LoopCloser.loop_scale``). None when fewer than ``min_points``."""
+        kp = np.flatnonzero((res.point_ids >= 0) & (kf.point_ids >= 0))
+        kp = np.array([k for k in kp.tolist() if int(res.point_ids[k]) in old.points and int(kf.point_ids[k]) in new.points],
+                      np.int64)
+        if len(kp) < min_points:
+            return None
+        Tn, To = np.linalg.inv(kf.T_world_cam), np.linalg.inv(res.T_world_cam)
+        zn = (new.points_xyz(kf.point_ids[kp]) @ Tn[:3, :3].T + Tn[:3, 3])[:, 2]
+        zo = (old.points_xyz(res.point_ids[kp]) @ To[:3, :3].T + To[:3, 3])[:, 2]
+        good = (zn > 0) & (zo > 0)
+        if int(good.sum()) < min_points:
+            return None
+        return float(np.median(zo[good] / zn[good]))
 
     def take(self, map_id: int) -> tuple[Map, KeyframeDatabase | None]:
         """Remove an archived map (it becomes the current one again, with the current map merged into it)."""
