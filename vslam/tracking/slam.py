@@ -279,7 +279,7 @@ class SlamTracker:
                 if est.tracked:
                     self._restart = None
                     est.pose_cov = np.zeros((6, 6))
-                    if self.atlas.maps and self.sensor != "mono":  # type: ignore[union-attr]
+                    if self.atlas.maps:  # type: ignore[union-attr]
                         self._try_merge(self.map.keyframes[self.ref_kf], frame.image)
             if self.mono_init is not None and self.cfg.backfill and not self.cfg.load_map:  # saved keyframes are not this run's frames
                 if est.tracked:
@@ -320,7 +320,7 @@ class SlamTracker:
                     # near where the camera was last seen: the new map's frame continues the old one's
                     if self._new_map(frame, feats, depth, ur, T_last):
                         est.tracked, est.status, est.pose_cov = True, "new_map", np.zeros((6, 6))
-                    elif lost_s > self.cfg.atlas.bridge_s or self._restart is not None:
+                    elif lost_s > self.cfg.atlas.bridge_s:
                         est.status = "lost"  # predicted no longer: no pose
                         self.T_world_cam = T_last
             if self.vio is not None:
@@ -356,7 +356,7 @@ class SlamTracker:
                     ms_map = _add_ms(ms_map, self._loop_step(kf, frame.image))
                 # local BA (and a loop correction) moved the keyframe: the frame's pose follows it
                 self.T_world_cam = kf.T_world_cam.copy()
-                if self.atlas is not None and self.atlas.maps and self.sensor != "mono":
+                if self.atlas is not None and self.atlas.maps:
                     ms_map = _add_ms(ms_map, self._try_merge(kf, frame.image))
         if self.vio is not None:
             self._init_inertial()
@@ -539,7 +539,7 @@ class SlamTracker:
             return False  # not enough depth for a map worth keeping (blur, a black frame): stay on the old one
         if self._pending is not None:
             self._flush_mapping()
-        if atlas.descriptor is None and atlas.cfg.merge and self.sensor != "mono":
+        if atlas.descriptor is None and atlas.cfg.merge:
             atlas.descriptor = self._place_descriptor()
         if self.map.keyframes:
             old_db = self.loop.db if self.loop is not None else None
@@ -586,14 +586,26 @@ class SlamTracker:
         return {"merge": (time.perf_counter() - t) * 1e3}
 
     def _merge(self, kf, old_id: int, cand: int, res: TrackResult) -> None:
-        """The current map joins archived map ``old_id``: moved rigidly by the transform the keyframe's two poses
-        give, the seam's duplicate points fused into the keyframe and its neighbours, then a local BA."""
+        """The current map joins archived map ``old_id``: moved by the transform the keyframe's two poses give
+        (monocular: a similarity, ``Atlas.scale``), the seam's duplicate points fused into the keyframe and its
+        neighbours, then a local BA."""
         atlas = self.atlas
         assert atlas is not None
-        T_old_new = res.T_world_cam @ inv_T(kf.T_world_cam)
+        scale = 1.0
+        if self.sensor == "mono":
+            s = atlas.scale(atlas.maps[old_id], self.map, kf, res)
+            if s is None:
+                log.info("keyframe %d seen in map %d, too few points on both sides for the scale: not merged", kf.id, old_id)
+                return
+            scale = s
+        T_old_new = atlas.old_from_new(kf.T_world_cam, res.T_world_cam, scale)
         old, old_db = atlas.take(old_id)
         new, new_id = self.map, self.map_id
-        old.absorb(new, T_old_new)
+        if scale != 1.0:  # the frames' poses relative to their keyframes, and the motion model, take the old unit
+            self.frames.scale_refs({k: scale for k in new.keyframes})
+            self.velocity = self.velocity.copy()
+            self.velocity[:3, 3] *= scale
+        old.absorb(new, T_old_new, scale)
         if self.loop is not None and old_db is not None:  # one database for the merged map
             for k in old_db.ids().tolist():
                 self.loop.db.add(k, old_db.vector(k))
@@ -619,8 +631,8 @@ class SlamTracker:
         if len(old.keyframes) >= 2:
             self.mapper.bundle_adjust(kf.id)
         self.T_world_cam = kf.T_world_cam.copy()
-        log.info("map %d merged into map %d (keyframe %d seen in keyframe %d, %d inliers)", new_id, old_id, kf.id,
-                 cand, res.n_inliers)
+        log.info("map %d merged into map %d (keyframe %d seen in keyframe %d, %d inliers, scale %.3f)", new_id,
+                 old_id, kf.id, cand, res.n_inliers, scale)
 
     def _status(self, ok: bool, method: str, depth: np.ndarray) -> str:
         """FrameEstimate.status of a frame after initialisation (see there)."""
