@@ -31,6 +31,7 @@ from vslam.data.select import kept_indices, select_frames
 from vslam.data.trajectory import Trajectory, TrajectoryWriter, write_trajectory
 from vslam.data.types import Frame, Sequence
 from vslam.errors import ConfigError, DatasetError, TrackingError, VslamError
+from vslam.geometry.se3 import interpolate_poses
 from vslam.eval import EvalConfig, EvalResult, evaluate, write_report
 from vslam.outputs import OUTPUT_ERRNOS, OutputError, describe_failure, prepare_run_dir, write_text
 from vslam.paths import data_root
@@ -97,6 +98,7 @@ class RunResult:
     # the final map of each written pose, and the evaluation of each map when there are several
     map_ids: np.ndarray | None = None
     map_evals: dict[int, EvalResult] = field(default_factory=dict)
+    eval_groundtruth: Trajectory | None = None  # what ``eval`` was measured against
 
     @property
     def fps(self) -> float:
@@ -276,6 +278,7 @@ class Pipeline:
         if gt is None or len(traj) < 3:
             return
         result.paths["groundtruth"] = write_trajectory(out / "groundtruth.tum.txt", gt, "tum")
+        result.eval_groundtruth = gt
         mono = cfg.dataset.sensor == "mono"
         ids = result.map_ids if result.map_ids is not None else np.zeros(len(traj), np.int64)
         maps, counts = np.unique(ids, return_counts=True)
@@ -426,11 +429,19 @@ class Pipeline:
         final = odo.final_poses(indices) if hasattr(odo, "final_poses") and len(poses) else None
         if final is not None:
             poses = list(final)
-        if final is not None or late:
+        final_ids = np.array(odo.final_map_ids(map_ids) if hasattr(odo, "final_map_ids") else map_ids, np.int64)
+        # frames predicted through a failure: in the final trajectory, between the measured frames around them
+        # (same map) rather than extrapolated from the ones before; trajectory.tum.txt keeps the prediction
+        smoothed, filled = interpolate_poses(np.array(stamps), np.array(poses).reshape(-1, 4, 4),
+                                             np.array(tracked, bool), final_ids)
+        if filled.any():
+            poses = list(smoothed)
+            log.info("%d predicted frames interpolated between measured ones in trajectory_final.tum.txt",
+                     int(filled.sum()))
+        if final is not None or late or filled.any():
             paths["trajectory_final"] = write_trajectory(out / "trajectory_final.tum.txt",
                                                          Trajectory(np.array(stamps), np.array(poses)), "tum")
         # maps never merged into one another: each frame's pose is in its own map's frame
-        final_ids = np.array(odo.final_map_ids(map_ids) if hasattr(odo, "final_map_ids") else map_ids, np.int64)
         maps, counts = np.unique(final_ids, return_counts=True)
         main_map = int(maps[np.argmax(counts)]) if len(maps) else 0
         if len(maps) > 1:

@@ -34,3 +34,19 @@ def test_gather_Rt_equals_fancy_indexing():
     R, t = gather_Rt(T, idx)
     np.testing.assert_array_equal(R, T[idx, :3, :3])
     np.testing.assert_array_equal(t, T[idx, :3, 3])
+
+
+def test_interpolate_poses_fills_unknown_between_known_of_the_same_group():
+    from vslam.geometry.se3 import interpolate_poses, make_T, so3_exp
+
+    t = np.arange(6, dtype=float)
+    T = np.array([make_T(so3_exp(np.array([0, 0, 0.1 * k])), np.array([k, 0.0, 0.0])) for k in range(6)])
+    T_bad = T.copy()
+    T_bad[[2, 3], :3, 3] = 99.0  # predicted, wrong
+    known = np.array([1, 1, 0, 0, 1, 0], bool)
+    out, done = interpolate_poses(t, T_bad, known)
+    assert done.tolist() == [False, False, True, True, False, False]  # the last has no known pose after it
+    np.testing.assert_allclose(out[[2, 3]], T[[2, 3]], atol=1e-12)  # linear motion: exactly recovered
+    np.testing.assert_array_equal(out[5], T_bad[5])
+    _, done = interpolate_poses(t, T_bad, known, group=np.array([0, 0, 0, 1, 1, 1]))
+    assert done.tolist() == [False, False, False, False, False, False]  # neighbours in another map: left alone

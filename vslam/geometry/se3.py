@@ -66,3 +66,30 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
 def so3_log(R: np.ndarray) -> np.ndarray:
     """(..., 3, 3) rotations -> (..., 3) rotation vectors (radians)."""
     return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()
+
+
+def interpolate_poses(t: np.ndarray, T: np.ndarray, known: np.ndarray, group: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Poses (N,4,4) at times ``t`` (increasing) where ``known`` is False replaced by the interpolation between the
+    nearest known poses before and after them (rotation by slerp, position linearly in time) -- only where both
+    exist and share the ``group`` (e.g. the map) of the pose replaced. -> (poses, mask of the poses replaced)."""
+    from scipy.spatial.transform import Slerp
+
+    t, known = np.asarray(t, np.float64), np.asarray(known, bool)
+    group = np.zeros(len(t), np.int64) if group is None else np.asarray(group)
+    out, done = np.array(T, dtype=np.float64, copy=True), np.zeros(len(t), bool)
+    idx = np.flatnonzero(known)
+    if len(idx) < 2:
+        return out, done
+    for i in np.flatnonzero(~known):
+        k = np.searchsorted(idx, i)
+        if k == 0 or k == len(idx):
+            continue
+        a, b = idx[k - 1], idx[k]
+        if not group[a] == group[b] == group[i]:
+            continue
+        w = (t[i] - t[a]) / (t[b] - t[a])
+        rot = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([T[a, :3, :3], T[b, :3, :3]])))([w]).as_matrix()[0]
+        out[i, :3, :3] = rot
+        out[i, :3, 3] = (1 - w) * T[a, :3, 3] + w * T[b, :3, 3]
+        done[i] = True
+    return out, done
