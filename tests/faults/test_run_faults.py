@@ -321,3 +321,26 @@ def test_metrics_json_of_a_good_run(cli, tum40, tmp_path):
     assert rc == 0 and "Traceback" not in err
     ate = json.loads((out / "report" / "metrics.json").read_text())["ate"]["translation_m"]["rmse"]
     assert ate < 0.01
+
+
+# -- 1-3: IMU data that cannot be believed (end to end through the CLI; the gate itself: tests/inertial) --------
+
+
+def test_imu_spikes_through_the_cli_are_a_warning_not_a_wrong_trajectory(cli, tmp_path, caplog):
+    from tests.inertial.test_imu_gating import _copy, _set, _subset
+
+    def spikes(lines, t_rel):
+        for t, col in ((1.2, 4), (1.4, 5), (1.6, 6)):
+            _set(lines, 1 + int(np.searchsorted(t_rel, t)), col, 1e6)
+        return lines
+
+    seq = _copy(_subset(), tmp_path / "seq", spikes)
+    out = tmp_path / "out"
+    rc, stdout, err = cli("run", "-c", "configs/euroc_stereo_inertial.yaml", "--data", seq, "--max-frames", 40,
+                          "-o", out, *FAST)
+    assert rc == 0 and "Traceback" not in err, err
+    assert "frames: 40 (40 tracked)" in stdout
+    gate = [r.getMessage() for r in caplog.records if "IMU samples rejected" in r.getMessage()]
+    assert len(gate) == 1 and "(3 range)" in gate[0] and "imu0/data.csv line " in gate[0]
+    ate = json.loads((out / "report" / "metrics.json").read_text())["ate"]["translation_m"]["rmse"]
+    assert ate < 0.005  # the clean run: 0.0008 m; believed, the spikes flew the trajectory off by kilometres
