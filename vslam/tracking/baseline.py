@@ -56,7 +56,9 @@ class FrameEstimate:
     # (RGB-D/stereo frame measured from 2-D matches only), "predicted" (constant velocity through a
     # failure), "uninitialised" (no map yet: placeholder pose), "new_map" (tracking was lost: a new map starts
     # at this frame, ``vslam.tracking.atlas``), "lost" (the old map was given up and no new one could start
-    # yet: the last pose held). "" = derived from ``tracked``.
+    # yet: the last pose held), "dense" (RGB-D, features too few: measured by depth ICP against the reference
+    # keyframe, ``vslam.tracking.dense``; all 6 degrees of freedom, frames whose geometry leaves one free are
+    # refused). "" = derived from ``tracked``.
     status: str = ""
     # the map the pose is expressed in (a new one each time tracking is lost; merged maps keep the older id)
     map_id: int = 0
@@ -73,7 +75,7 @@ class FrameEstimate:
     @property
     def uncertain(self) -> bool:
         """True when the pose was not measured from a full frame: predicted, uninitialised, no depth."""
-        return self.status_name not in ("tracked", "relocalised", "new_map")
+        return self.status_name not in ("tracked", "relocalised", "new_map", "dense")
 
     @property
     def status_name(self) -> str:

@@ -329,7 +329,7 @@ class SlamTracker:
                 feats, depth, ur = self._drop_moving(res, feats, depth, ur)
             t3 = time.perf_counter()
             vio_kf = self.vio is not None and res.ok and est.status != "no_depth" and self.vio.wants_keyframe(frame.timestamp)
-            want = res.ok and not self.cfg.localize_only and (self._want_keyframe(frame, res.n_inliers, res.point_ids, depth) or vio_kf)
+            want = res.ok and not self.cfg.localize_only and (self._want_keyframe(frame, res.n_inliers, res.point_ids, depth, res.method) or vio_kf)
             if want and self._pending is not None:
                 # The previous keyframe's BA lands first and the decision is taken again on the adjusted map:
                 # decided on the stale one (its outlier observations still counted), keyframes came every
@@ -337,7 +337,7 @@ class SlamTracker:
                 # keyframes back while BA runs (ORB-SLAM's "mapping busy") cost accuracy (TUM teddy 0.0044 ->
                 # 0.0051 m with an 8-frame lag, KITTI 07 mono 0.293 -> 0.359 m with 5).
                 ms_map = _add_ms(ms_map, self._flush_mapping())
-                want = self._want_keyframe(frame, res.n_inliers, res.point_ids, depth) or vio_kf
+                want = self._want_keyframe(frame, res.n_inliers, res.point_ids, depth, res.method) or vio_kf
             if want:
                 kf = self.map.add_keyframe(frame.index, frame.timestamp, self.T_world_cam, feats, depth, ur)
                 if self.dense is not None:
@@ -644,10 +644,12 @@ class SlamTracker:
             return "no_depth"  # measured from 2-D matches only: weaker, and the frame cannot become a keyframe
         return "tracked"
 
-    def _want_keyframe(self, frame: Frame, n_inliers: int, point_ids: np.ndarray, depth: np.ndarray) -> bool:
+    def _want_keyframe(self, frame: Frame, n_inliers: int, point_ids: np.ndarray, depth: np.ndarray, method: str = "") -> bool:
         tc = self.cfg.tracking
         if self.sensor != "mono" and int(np.isfinite(depth).sum()) < tc.min_depth_points:
             return False  # a keyframe without depth would add no points
+        if method == "dense":  # depth ICP (vslam.tracking.dense): its reference fell behind, or features are back
+            return self.dense.wants_keyframe or int(np.isfinite(depth).sum()) >= tc.kf_min_inliers  # type: ignore
         ref = self.map.keyframes[self.ref_kf]  # type: ignore[index]
         min_obs = min(3, len(self.map.keyframes))  # ORB-SLAM: 2 while the map has <= 2 keyframes; 1 for the first
         ref_ids = ref.point_ids[ref.point_ids >= 0]

@@ -60,6 +60,14 @@ class SyntheticConfig:
     # with std blur_sigma pixels (defocus / strong motion blur: few, displaced corners).
     blurs: tuple[tuple[int, int], ...] = ()
     blur_sigma: float = 3.0
+    # (start_frame, length) pairs; those frames' images (left and right, not depth) keep only fade_contrast of
+    # their contrast around their mean grey level (blank walls under flat light: too faint for corners).
+    fades: tuple[tuple[int, int], ...] = ()
+    fade_contrast: float = 0.1
+    # corridor scene: metres from the last camera position to the end wall ahead. The default keeps it out of
+    # any depth sensor's range (four walls parallel to the motion: depth alone cannot measure it); a few metres
+    # make a dead end that depth ICP can register against (vslam.tracking.dense).
+    corridor_end: float = 25.0
     # Poor light (seed 003 ch. 3: lines hold where points fail): the rendered radiance is scaled by ``exposure``
     # (< 1: a dim scene at a fixed sensor gain), then sensor read noise of std ``image_noise`` grey levels is
     # added to every pixel of both cameras, independently per frame (seeded), before rounding to 8 bits. A dim,
@@ -92,13 +100,15 @@ class SyntheticConfig:
             "imu_rate": self.imu_rate > 0,
             "speed": self.speed is None or self.speed > 0,
             "blur_sigma": self.blur_sigma > 0,
+            "fade_contrast": 0 <= self.fade_contrast <= 1,
+            "corridor_end": self.corridor_end > 0,
             "exposure": 0 < self.exposure <= 4,
             "image_noise": 0 <= self.image_noise <= 64,
         }
         for name, ok in checks.items():
             if not ok:
                 raise ConfigError(f"synthetic.{name} is out of range: {getattr(self, name)!r}")
-        for name in ("blackouts", "blurs"):
+        for name in ("blackouts", "blurs", "fades"):
             for i, pair in enumerate(getattr(self, name)):
                 if len(pair) != 2 or pair[0] < 0 or pair[1] < 0:
                     raise ConfigError(f"synthetic.{name}[{i}] must be (start_frame >= 0, length >= 0), got {pair!r}")

@@ -23,10 +23,11 @@ CORRIDOR_HEIGHT = 2.7
 CORRIDOR_PPM = 150.0  # texels per metre
 
 
-def corridor_box(cam_positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(lo, hi) world corners of the corridor around the (N,2,3) camera centres."""
+def corridor_box(cam_positions: np.ndarray, end: float = 25.0) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) world corners of the corridor around the (N,2,3) camera centres; the end wall ``end`` metres
+    beyond the last one."""
     x0, x1 = cam_positions[..., 0].min(), cam_positions[..., 0].max()
-    return np.array([x0 - 6.0, -CORRIDOR_HALF_WIDTH, 0.0]), np.array([x1 + 25.0, CORRIDOR_HALF_WIDTH, CORRIDOR_HEIGHT])
+    return np.array([x0 - 6.0, -CORRIDOR_HALF_WIDTH, 0.0]), np.array([x1 + end, CORRIDOR_HALF_WIDTH, CORRIDOR_HEIGHT])
 
 
 def _line(img: np.ndarray, p1: tuple[float, float], p2: tuple[float, float], colour, width: float) -> None:

@@ -159,7 +159,7 @@ def build_scene(cfg: SyntheticConfig, cam_positions: np.ndarray, frame_tau: np.n
     """
     rng = np.random.default_rng([cfg.seed, 3])  # stream 3: scene and textures
     if cfg.scene == "corridor":  # plain walls with long edges (corridor.py); no markers, no movers
-        lo, hi = corridor.corridor_box(cam_positions)
+        lo, hi = corridor.corridor_box(cam_positions, cfg.corridor_end)
         images = corridor.face_textures(rng, [_face_size(lo, hi, f) for f in range(6)], corridor.CORRIDOR_PPM)
         atlas = _AtlasBuilder(max(4096, max(img.shape[1] for img in images) + 2 * PAD))
         pos = np.array([atlas.add(img) for img in images])

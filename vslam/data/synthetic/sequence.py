@@ -106,6 +106,9 @@ class SyntheticSequence(Sequence):
         self._blur = np.zeros(cfg.n_frames, bool)
         for start, length in cfg.blurs:
             self._blur[start : start + length] = True
+        self._fade = np.zeros(cfg.n_frames, bool)
+        for start, length in cfg.fades:
+            self._fade[start : start + length] = True
         rng = np.random.default_rng([cfg.seed, 4])  # stream 4: lighting
         self._light = (rng.uniform(3.0, 5.0), rng.uniform(0, 2 * np.pi), rng.uniform(5.0, 8.0), rng.uniform(0, 2 * np.pi))
         logger.debug(
@@ -187,16 +190,24 @@ class SyntheticSequence(Sequence):
         tau = float(self._tau[i])
         left = self._renderer.render(T, tau, movers)
         lut = self._lighting_lut(i)
-        image = self._sensor(i, 0, self._blurred(i, cv2.LUT(left.image, lut) if lut is not None else left.image))
+        image = self._sensor(i, 0, self._faded(i, self._blurred(i, cv2.LUT(left.image, lut) if lut is not None else left.image)))
         right_img = None
         if right:
             view = self._renderer.render(T @ self.T_cam0_cam1, tau, movers)
-            right_img = self._sensor(i, 1, self._blurred(i, cv2.LUT(view.image, lut) if lut is not None else view.image))
+            right_img = self._sensor(i, 1, self._faded(i, self._blurred(i, cv2.LUT(view.image, lut) if lut is not None else view.image)))
         boxes, ids = boxes_from_ids(left.obj, len(self.scene.movers))
         return SyntheticRender(image, left.depth, right_img, left.obj > 0, boxes, ids, T)
 
     def _blurred(self, i: int, image: np.ndarray) -> np.ndarray:
         return cv2.GaussianBlur(image, (0, 0), self.cfg.blur_sigma) if self._blur[i] else image
+
+    def _faded(self, i: int, image: np.ndarray) -> np.ndarray:
+        """``SyntheticConfig.fades``: the contrast around the image's mean grey scaled by fade_contrast."""
+        if not self._fade[i]:
+            return image
+        img = image.astype(np.float32)
+        mean = np.float32(img.mean())
+        return np.clip(np.round(mean + np.float32(self.cfg.fade_contrast) * (img - mean)), 0, 255).astype(np.uint8)
 
     def _sensor(self, i: int, cam: int, image: np.ndarray) -> np.ndarray:
         """Exposure and read noise (``SyntheticConfig.exposure`` / ``image_noise``); the same frame and camera
