@@ -195,3 +195,25 @@ def test_lost_frames_have_no_pose(tmp_path):
     stamps = read_trajectory(tmp_path / "trajectory.tum.txt").timestamps
     assert len(stamps) == len(rows) - 29 - (status[60] == "lost")
     assert len(res.trajectory) == len(stamps)
+
+
+def test_tracking_states_on_a_blur_and_a_blackout():
+    """initialising -> tracking; blurred frames: lost (predicted), then relocalising (too few corners to start a
+    map: the old one is still tried) until the sharp frames are tracked again; a black stretch the same, its
+    frames past the 1 s bridge without a pose; the first frame after it (1.2 s further on, not found in the old
+    map) starts map 1."""
+    scfg = SyntheticConfig(n_frames=70, blurs=((10, 6),), blur_sigma=8.0, blackouts=((25, 36),), **SMALL)
+    seq = SyntheticSequence(scfg)
+    st = SlamTracker(seq.calibration, "rgbd", SlamConfig())
+    assert st.state == "initialising"
+    states, status = [], []
+    for f in seq:
+        est = st.track(f)
+        states.append(st.state)
+        status.append(est.status_name)
+    assert states[:10] == ["tracking"] * 10
+    assert states[10:12] == ["lost"] * 2 and set(states[12:16]) == {"relocalising"}  # 0.1 s: 3 frames at 30 Hz
+    assert states[16:25] == ["tracking"] * 9
+    assert states[25:27] == ["lost"] * 2 and set(states[27:61]) == {"relocalising"}
+    assert status[25:54] == ["predicted"] * 29 and set(status[56:61]) == {"lost"}  # the 1 s bridge
+    assert states[61:] == ["tracking"] * 9 and status[61] == "new_map" and st.map_id == 1  # 1.2 s on: a new map

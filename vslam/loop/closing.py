@@ -231,14 +231,7 @@ class LoopCloser:
     def fuse(self, kf: KeyFrame, match: LoopMatch) -> None:
         """Merge the loop side's points with their duplicates on the query side (the older point is kept)."""
         m = self.map
-        for kp in np.flatnonzero(match.point_ids >= 0):  # the verified matches first
-            pid, old = int(match.point_ids[kp]), int(kf.point_ids[kp])
-            if pid not in m.points:
-                continue
-            if old < 0:
-                m.add_observation(pid, kf.id, int(kp))
-            elif old != pid and old in m.points:
-                m.merge_points(pid, old)
+        m.fuse_matches(kf.id, match.point_ids)  # the verified matches first
         if self.mapper is None:
             return
         loop_pids = self.verifier.candidate_points(m, match.candidate, kf.id - self.cfg.min_kf_gap)

@@ -192,6 +192,20 @@ class Map:
         mk.n_visible += mp_drop.n_visible
         mk.n_found += mp_drop.n_found
 
+    def fuse_matches(self, kf_id: int, point_ids: np.ndarray) -> None:
+        """Keyframe ``kf_id``'s keypoints matched to ``point_ids`` (-1: none) by a loop or a map merge: each
+        becomes an observation of its matched point, and a point the keypoint already had is merged into the
+        matched one (the matched, older side is kept)."""
+        kf = self.keyframes[kf_id]
+        for kp in np.flatnonzero(point_ids >= 0).tolist():
+            pid, mine = int(point_ids[kp]), int(kf.point_ids[kp])
+            if pid not in self.points:
+                continue
+            if mine < 0:
+                self.add_observation(pid, kf_id, kp)
+            elif mine != pid and mine in self.points:
+                self.merge_points(pid, mine)
+
     # -- queries -------------------------------------------------------------
     def covisibility(self, kf_id: int) -> dict[int, int]:
         """{other keyframe id: number of map points it shares with ``kf_id``}, ordered by id."""

@@ -176,6 +176,7 @@ class SlamTracker:
                 attach_saved_map(self, cfg.load_map)
         self._t_tracked: float | None = None  # time of the last tracked frame
         self._restart: np.ndarray | None = None  # a map was lost and no new one started yet: the pose it starts at
+        self._lost_for_now = 0.0  # seconds since the last tracked frame, at the last frame not tracked
         self.T_world_cam = np.eye(4)
         self.velocity = np.eye(4)  # T_prev_cur of the last tracked step
         self.ref_kf: int | None = None
@@ -294,15 +295,7 @@ class SlamTracker:
             T_imu = self.vio.predict(frame.timestamp) if self.vio is not None else None
             if T_imu is not None:  # once initialised, IMU propagation replaces constant velocity
                 T_pred = T_imu
-            res = self.tracker.track(feats, ur, T_pred, self.ref_kf, after_loss=not self._prev_tracked,
-                                     last_ids=self._last_ids)
-            if not res.ok and self.loop is not None and self.cfg.loop.relocalise:  # place recognition over all keyframes
-                res = self.loop.relocalise(self.tracker, feats, ur, frame.image) or res
-            if res.ok and self.lines is not None:  # issue 6: the pose on points + matched map lines
-                res.T_world_cam, self._line_ids = self.lines.refine_tracked(
-                    res.T_world_cam, res.point_ids, feats, ur, self._line_feats, self.ref_kf, self.cfg.tracking.local_keyframes)
-            if not res.ok and self.dense is not None:  # too few features (issue 38): ICP of the depth against the keyframe's
-                res = self.dense.track_frame(frame, T_pred, self.map, len(feats)) or res
+            res = self._measure(frame, feats, ur, T_pred)
             est.n_matches, est.n_inliers, est.tracked = res.n_matches, res.n_inliers, res.ok
             est.status, est.pose_cov = self._status(res.ok, res.method, depth), res.cov
             if res.ok:
@@ -312,17 +305,7 @@ class SlamTracker:
                 self.ref_kf = self.tracker.best_reference(res.point_ids, self.ref_kf)
                 self._last_ids = res.point_ids[res.point_ids >= 0]
             else:
-                T_last = self.T_world_cam
-                self.T_world_cam = T_pred
-                log.debug("frame %d not tracked; pose predicted", frame.index)
-                lost_s = self._lost_for(frame.timestamp)
-                if lost_s >= self.cfg.atlas.new_map_after_s:
-                    # near where the camera was last seen: the new map's frame continues the old one's
-                    if self._new_map(frame, feats, depth, ur, T_last):
-                        est.tracked, est.status, est.pose_cov = True, "new_map", np.zeros((6, 6))
-                    elif lost_s > self.cfg.atlas.bridge_s:
-                        est.status = "lost"  # predicted no longer: no pose
-                        self.T_world_cam = T_last
+                self._lost(frame, feats, depth, ur, T_pred, est)
             if self.vio is not None:
                 self.vio.update(frame.timestamp, self.T_world_cam, res.ok)
             if self.dynamic is not None:
@@ -514,6 +497,53 @@ class SlamTracker:
         self.T_world_cam = T0.copy()
         return True
 
+    # -- the tracking states -------------------------------------------------------
+    @property
+    def state(self) -> str:
+        """Where tracking stands after the last frame: "initialising" (no map yet), "tracking" (the frame was
+        measured), "lost" (not measured: predicted while every recovery step is tried on the next frames),
+        "relocalising" (lost for ``atlas.new_map_after_s``: a new map starts at the first frame that can make
+        one, the old map is still tried until then), "new_map" (a monocular map was given up; the next two-view
+        initialisation starts the new one)."""
+        if self._restart is not None:
+            return "new_map"
+        if self.ref_kf is None:
+            return "initialising"
+        if self._prev_tracked:
+            return "tracking"
+        return "relocalising" if self._lost_for_now >= self.cfg.atlas.new_map_after_s else "lost"
+
+    def _measure(self, frame: Frame, feats: Features, ur: np.ndarray, T_pred: np.ndarray) -> TrackResult:
+        """The recovery ladder, each step only when the ones before failed: the motion model's projection search,
+        the reference keyframe by descriptor, after a loss the newest keyframes (``Tracker.track``); place
+        relocalisation over the whole map (``slam.loop``); the dense depth step (RGB-D, ``slam.dense``)."""
+        res = self.tracker.track(feats, ur, T_pred, self.ref_kf, after_loss=not self._prev_tracked,  # type: ignore[arg-type]
+                                 last_ids=self._last_ids)
+        if not res.ok and self.loop is not None and self.cfg.loop.relocalise:  # place recognition over all keyframes
+            res = self.loop.relocalise(self.tracker, feats, ur, frame.image) or res
+        if res.ok and self.lines is not None:  # issue 6: the pose on points + matched map lines
+            res.T_world_cam, self._line_ids = self.lines.refine_tracked(
+                res.T_world_cam, res.point_ids, feats, ur, self._line_feats, self.ref_kf, self.cfg.tracking.local_keyframes)
+        if not res.ok and self.dense is not None:  # too few features (issue 38): ICP of the depth against the keyframe's
+            res = self.dense.track_frame(frame, T_pred, self.map, len(feats)) or res
+        return res
+
+    def _lost(self, frame: Frame, feats: Features, depth: np.ndarray, ur: np.ndarray, T_pred: np.ndarray,
+              est: FrameEstimate) -> None:
+        """A frame no recovery step measured: predicted (motion model) at first; once lost for
+        ``atlas.new_map_after_s`` a new map from this frame if it can make one; past ``atlas.bridge_s`` no pose."""
+        T_last = self.T_world_cam
+        self.T_world_cam = T_pred
+        log.debug("frame %d not tracked; pose predicted", frame.index)
+        lost_s = self._lost_for_now = self._lost_for(frame.timestamp)
+        if lost_s >= self.cfg.atlas.new_map_after_s:
+            # near where the camera was last seen: the new map's frame continues the old one's
+            if self._new_map(frame, feats, depth, ur, T_last):
+                est.tracked, est.status, est.pose_cov = True, "new_map", np.zeros((6, 6))
+            elif lost_s > self.cfg.atlas.bridge_s:
+                est.status = "lost"  # predicted no longer: no pose
+                self.T_world_cam = T_last
+
     # -- several maps (``vslam.tracking.atlas``) -----------------------------------
     def _lost_for(self, t: float) -> float:
         """Seconds since the last tracked frame; 0 while a new map cannot be made (no Atlas)."""
@@ -615,15 +645,7 @@ class SlamTracker:
         atlas.parent[new_id] = old_id
         atlas.merges.append((new_id, old_id, kf.id, cand))
         self.map_id = old_id
-        # the keyframe's keypoints that matched the old map's points: those points, fused with the new ones
-        for kp in np.flatnonzero(res.point_ids >= 0):
-            pid, mine = int(res.point_ids[kp]), int(kf.point_ids[kp])
-            if pid not in old.points:
-                continue
-            if mine < 0:
-                old.add_observation(pid, kf.id, int(kp))
-            elif mine != pid and mine in old.points:
-                old.merge_points(pid, mine)
+        old.fuse_matches(kf.id, res.point_ids)  # the keyframe's keypoints that matched the old map's points
         _, seam = old.local_map(cand, self.cfg.tracking.local_keyframes)
         for k in [kf.id, *old.covisible_keyframes(kf.id, 1, self.cfg.mapping.fuse_neighbors)]:
             self.mapper._fuse_into(old.keyframes[k], seam)
