@@ -24,6 +24,7 @@ import math
 import multiprocessing as mp
 import os
 import platform
+import shutil
 import statistics
 import time
 from dataclasses import dataclass, field
@@ -79,6 +80,7 @@ def _job_run(config: str | None, overrides: dict[str, Any], out_dir: str) -> dic
     from vslam.pipeline import Pipeline, PipelineConfig
 
     cfg = PipelineConfig.load(config, deep_merge(overrides, {"output": {"dir": out_dir}}))
+    shutil.rmtree(out_dir, ignore_errors=True)  # the row's own folder: its previous run goes without a warning
     res = Pipeline(cfg).run()
     row: dict[str, Any] = {"frames": len(res.trajectory), "tracked": int(res.tracked.sum()), "fps": res.fps,
                            "ms_per_frame": 1e3 * res.seconds / max(1, len(res.trajectory))}
