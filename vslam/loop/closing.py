@@ -245,28 +245,9 @@ class LoopCloser:
             self.mapper.bundle_adjust(kf.id)
 
     def global_bundle_adjust(self) -> None:
-        """BA over every keyframe and point (first keyframe fixed, and those seeing fewer than
-        ``global_ba_min_obs`` points) with the back end's local-BA machinery:
-        the pose graph moves keyframes rigidly with their points; BA then re-fits both to the observations,
-        including the ones fused across the loop. Outlier observations are removed as in local BA."""
-        m = self.map
-        pts = np.array(sorted(m.points), np.int64)
-        okf, opt, ouv, our = [], [], [], []
-        for pid in pts.tolist():
-            for k, kp in m.points[pid].observations.items():
-                f = m.keyframes[k]
-                okf.append(k), opt.append(pid), ouv.append(f.features.uv[kp]), our.append(f.ur[kp])
-        if not okf:
-            return
-        n_obs = np.bincount(np.array(okf), minlength=max(m.keyframes) + 1)
-        fixed = {min(m.keyframes)} | {k for k in m.keyframes if n_obs[k] < self.cfg.global_ba_min_obs}
-        problem = BAProblem({k: f.T_world_cam for k, f in m.keyframes.items()}, fixed,
-                            {p: m.points[p].xyz for p in pts.tolist()}, np.array(okf), np.array(opt),
-                            np.array(ouv).reshape(-1, 2), np.array(our, dtype=np.float64))
-        backend = dataclasses.replace(self.backend, max_iterations=self.cfg.global_ba_iterations)
-        res = local_bundle_adjustment(problem, self.verifier.stereo_cam, backend)
-        m.apply_adjustment(res.poses, res.points, res.inliers, okf, opt, fixed)
-        log.debug("global BA: %d keyframes, %d observations, %.0f ms", len(m.keyframes), len(okf), res.ms["total"])
+        """``global_bundle_adjust`` of the map with this closer's settings."""
+        global_bundle_adjust(self.map, self.verifier.stereo_cam, self.backend, self.cfg.global_ba_iterations,
+                             self.cfg.global_ba_min_obs)
 
     def write_stats(self, path: Path) -> Path:
         """``loops.json``: candidates, verified / corrected loops as (query kf, candidate kf), relocalisations,
@@ -291,6 +272,30 @@ class LoopCloser:
                 self.stats.relocalised += 1
                 return res
         return None
+
+
+def global_bundle_adjust(m: Map, stereo_cam: StereoCamera, backend: BackendConfig, iterations: int = 10,
+                         min_obs: int = 20) -> None:
+    """BA over every keyframe and point (first keyframe fixed, and those seeing fewer than ``min_obs`` points)
+    with the back end's local-BA machinery: after a loop correction or a map merge moved keyframes rigidly with
+    their points, BA re-fits both to the observations, including the ones fused across the loop or the seam.
+    Outlier observations are removed as in local BA."""
+    pts = np.array(sorted(m.points), np.int64)
+    okf, opt, ouv, our = [], [], [], []
+    for pid in pts.tolist():
+        for k, kp in m.points[pid].observations.items():
+            f = m.keyframes[k]
+            okf.append(k), opt.append(pid), ouv.append(f.features.uv[kp]), our.append(f.ur[kp])
+    if not okf:
+        return
+    n_obs = np.bincount(np.array(okf), minlength=max(m.keyframes) + 1)
+    fixed = {min(m.keyframes)} | {k for k in m.keyframes if n_obs[k] < min_obs}
+    problem = BAProblem({k: f.T_world_cam for k, f in m.keyframes.items()}, fixed,
+                        {p: m.points[p].xyz for p in pts.tolist()}, np.array(okf), np.array(opt),
+                        np.array(ouv).reshape(-1, 2), np.array(our, dtype=np.float64))
+    res = local_bundle_adjustment(problem, stereo_cam, dataclasses.replace(backend, max_iterations=iterations))
+    m.apply_adjustment(res.poses, res.points, res.inliers, okf, opt, fixed)
+    log.debug("global BA: %d keyframes, %d observations, %.0f ms", len(m.keyframes), len(okf), res.ms["total"])
 
 
 def attach_saved_map(slam, path: str) -> None:

@@ -8,7 +8,7 @@ looked for in the archived maps by its place descriptor (bag of words over its O
 closer's database when that is on); a candidate confirmed by descriptor matching + PnP against that map's
 points (``Tracker.track_keyframe``, the relocalisation step) gives the rigid transform between the two maps,
 and the current map is moved into the old one (``Map.absorb``): the seam's duplicate points are fused and a
-local BA welds it (``SlamTracker._merge``). Monocular maps have a unit of their own each: the transform is a
+global BA re-fits the merged map, as after a loop (``SlamTracker._merge``). Monocular maps have a unit of their own each: the transform is a
 similarity, its scale the median depth ratio of the keypoints' points in the two maps (``Atlas.scale``).
 """
 

@@ -618,7 +618,7 @@ class SlamTracker:
     def _merge(self, kf, old_id: int, cand: int, res: TrackResult) -> None:
         """The current map joins archived map ``old_id``: moved by the transform the keyframe's two poses give
         (monocular: a similarity, ``Atlas.scale``), the seam's duplicate points fused into the keyframe and its
-        neighbours, then a local BA."""
+        neighbours, then a global BA."""
         atlas = self.atlas
         assert atlas is not None
         scale = 1.0
@@ -650,8 +650,11 @@ class SlamTracker:
         for k in [kf.id, *old.covisible_keyframes(kf.id, 1, self.cfg.mapping.fuse_neighbors)]:
             self.mapper._fuse_into(old.keyframes[k], seam)
         old.update_descriptors(np.unique(kf.point_ids[kf.point_ids >= 0]))
-        if len(old.keyframes) >= 2:
-            self.mapper.bundle_adjust(kf.id)
+        # as after a loop: every keyframe and point re-fitted across the seam, whose fused points now tie the maps
+        from vslam.loop.closing import global_bundle_adjust
+
+        lc = self.cfg.loop
+        global_bundle_adjust(old, self.stereo_cam, self.cfg.backend, lc.global_ba_iterations, lc.global_ba_min_obs)
         self.T_world_cam = kf.T_world_cam.copy()
         log.info("map %d merged into map %d (keyframe %d seen in keyframe %d, %d inliers, scale %.3f)", new_id,
                  old_id, kf.id, cand, res.n_inliers, scale)
