@@ -318,7 +318,6 @@ def attach_saved_map(slam, path: str) -> None:
                 slam.atlas.descriptor = slam.loop.descriptor
             for mid, (om, odb) in loaded.others.items():
                 slam.atlas.archive(mid, om, odb)
-                slam.frames.archived[mid] = om
             slam.atlas.n_maps = max([loaded.current, *loaded.others]) + 1
         else:
             log.warning("%s: %d other maps in the file are not used (slam.atlas is off)", path, len(loaded.others))

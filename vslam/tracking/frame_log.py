@@ -25,7 +25,7 @@ class FrameLog:
 
     def __init__(self, slam_map: Map):
         self.map = slam_map
-        self.archived: dict[int, Map] = {}  # the Atlas's other maps: keyframe ids are unique across them
+        self.archived: dict[int, Map] = {}  # the Atlas's archived maps (its own dict): keyframe ids are unique
         self._rec: dict[int, tuple[int | None, np.ndarray]] = {}
         self.moved = False  # a global change happened after some frames were recorded
 

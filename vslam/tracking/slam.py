@@ -166,6 +166,8 @@ class SlamTracker:
         self.map_id = 0
         self.atlas = (Atlas(cfg.atlas, self.cam, self.stereo_cam, cfg.tracking, cfg.backend)
                       if cfg.atlas.enabled and not cfg.localize_only and self.vio is None else None)
+        if self.atlas is not None:  # frames referenced to keyframes of an archived map follow them there
+            self.frames.archived = self.atlas.maps
         self.loop = None
         if cfg.loop.enabled or cfg.load_map:
             from vslam.loop.closing import LoopCloser, attach_saved_map
@@ -574,7 +576,6 @@ class SlamTracker:
         if self.map.keyframes:
             old_db = self.loop.db if self.loop is not None else None
             atlas.archive(self.map_id, self.map, old_db)
-            self.frames.archived[self.map_id] = self.map
             self.map_id = atlas.new_id()
         if self.loop is not None:
             from vslam.loop.database import KeyframeDatabase
@@ -640,7 +641,6 @@ class SlamTracker:
             for k in old_db.ids().tolist():
                 self.loop.db.add(k, old_db.vector(k))
         self._use_map(old)
-        self.frames.archived.pop(old_id, None)
         self.frames.moved = True  # the frames of the merged map are re-expressed in the old map's frame
         atlas.parent[new_id] = old_id
         atlas.merges.append((new_id, old_id, kf.id, cand))

@@ -165,8 +165,7 @@ class Vio:
             self._t_first = t
         change = self.health.frame(t)
         if change == "off":  # no IMU prediction, no IMU factors until the data is back
-            self.nav, self._pred = None, None
-            self._chain_from, self._restart = np.inf, False
+            self._chain_off(restart=False)
             if not self.ready and not self._static_failed:
                 log.info("static IMU initialisation impossible: its window has a hole")
                 self._static_failed = True
@@ -229,6 +228,11 @@ class Vio:
         elif self.nav is not None:
             kf.velocity, kf.bias = self.nav.v.copy(), self.nav.bias.copy()
 
+    def _chain_off(self, restart: bool) -> None:
+        """No IMU prediction and no IMU factors from now on; ``restart``: the next keyframe starts a new chain (else
+        it waits for good data, ``add_imu``)."""
+        self._chain_from, self._restart, self.nav, self._pred = np.inf, restart, None, None
+
     def _restart_chain(self, kf) -> None:
         """The first keyframe after a stretch without usable IMU data (or after a dropped IMU factor) starts a new
         IMU chain: velocity from the two last tracked frames (vision alone: the IMU around the restart may be what
@@ -287,7 +291,7 @@ class Vio:
                                                     marginal_for=ids[1] if len(ids) > 1 else None)
         except InertialError as e:  # the per-frame coverage test should have turned the chain off before this
             log.warning("VI BA impossible (%s); visual-only BA, the IMU chain restarts at the next keyframe", e)
-            self._chain_from, self._restart, self.nav, self._pred = np.inf, True, None, None
+            self._chain_off(restart=True)
             return local_bundle_adjustment(problem, camera, backend)
         log.debug("IMU factor chi2 %s", {k: round(v, 1) for k, v in res.imu_chi2.items()})
         for i, j, chi2 in res.dropped:  # the stretch is off: the chain starts again at the next keyframe
@@ -296,7 +300,7 @@ class Vio:
                         i, j, self.tc(self.map.keyframes[i].timestamp), self.tc(self.map.keyframes[j].timestamp), chi2,
                         self.cfg.ba.max_imu_chi2)
         if res.dropped:
-            self._chain_from, self._restart, self.nav, self._pred = np.inf, True, None, None
+            self._chain_off(restart=True)
         for k in ids:
             self.map.keyframes[k].velocity = res.velocity[k]
             self.map.keyframes[k].bias = res.bias[k]
