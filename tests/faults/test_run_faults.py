@@ -321,7 +321,7 @@ def test_metrics_json_of_a_good_run(cli, tum40, tmp_path):
     rc, stdout, err = cli("run", "-c", TUM, "--data", tum40, "--max-frames", N, "-o", out, *FAST)
     assert rc == 0 and "Traceback" not in err
     ate = json.loads((out / "report" / "metrics.json").read_text())["ate"]["translation_m"]["rmse"]
-    assert ate < 0.01
+    assert ate < 0.0045  # measured 0.0032 m
 
 
 # -- 1-3: IMU data that cannot be believed (end to end through the CLI; the gate itself: tests/inertial) --------
@@ -344,4 +344,4 @@ def test_imu_spikes_through_the_cli_are_a_warning_not_a_wrong_trajectory(cli, tm
     gate = [r.getMessage() for r in caplog.records if "IMU samples rejected" in r.getMessage()]
     assert len(gate) == 1 and "(3 range)" in gate[0] and "imu0/data.csv line " in gate[0]
     ate = json.loads((out / "report" / "metrics.json").read_text())["ate"]["translation_m"]["rmse"]
-    assert ate < 0.005  # the clean run: 0.0008 m; believed, the spikes flew the trajectory off by kilometres
+    assert ate < 0.0012  # measured 0.00084 m (the clean run: 0.0008 m); believed, 1e6 spikes fly it off by km
