@@ -68,10 +68,16 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()
 
 
-def interpolate_poses(t: np.ndarray, T: np.ndarray, known: np.ndarray, group: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def interpolate_poses(t: np.ndarray, T: np.ndarray, known: np.ndarray, group: np.ndarray | None = None,
+                      tangent_window: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
     """Poses (N,4,4) at times ``t`` (increasing) where ``known`` is False replaced by the interpolation between the
-    nearest known poses before and after them (rotation by slerp, position linearly in time) -- only where both
-    exist and share the ``group`` (e.g. the map) of the pose replaced. -> (poses, mask of the poses replaced)."""
+    nearest known poses before and after them -- only where both exist and share the ``group`` (e.g. the map) of
+    the pose replaced. -> (poses, mask of the poses replaced).
+
+    Rotation by slerp (exact for a constant turn rate). Position by a cubic Hermite curve whose end velocities are
+    the known motion within ``tangent_window`` seconds outside the gap (the camera does not stop at a gap's ends:
+    a linear chord across a 3 s gap of a turning camera cuts the curve by decimetres); linear where an end has no
+    such motion. The window spans several frames so that one frame's pose noise does not set the tangent."""
     from scipy.spatial.transform import Slerp
 
     t, known = np.asarray(t, np.float64), np.asarray(known, bool)
@@ -80,6 +86,43 @@ def interpolate_poses(t: np.ndarray, T: np.ndarray, known: np.ndarray, group: np
     idx = np.flatnonzero(known)
     if len(idx) < 2:
         return out, done
+
+    def velocity(k: int, step: int) -> np.ndarray | None:
+        """Velocity at known pose idx[k] from the known poses of its group within the window on the side away
+        from the gap (step -1: before, +1: after): the slope at idx[k] of a least-squares quadratic (a mean
+        velocity would lag a turning camera's by half the window)."""
+        js = [idx[k]]
+        while 0 <= k + step * len(js) < len(idx) and group[idx[k + step * len(js)]] == group[idx[k]] \
+                and abs(t[idx[k + step * len(js)]] - t[idx[k]]) <= tangent_window:
+            js.append(idx[k + step * len(js)])
+        if len(js) < 2:
+            return None
+        dts, P = t[js] - t[idx[k]], T[js, :3, 3]
+        if len(js) == 2:
+            return (P[1] - P[0]) / dts[1]
+        A = np.stack([np.ones_like(dts), dts, dts**2], axis=1)
+        return np.linalg.lstsq(A, P, rcond=None)[0][1]
+
+    for i in np.flatnonzero(~known):
+        k = np.searchsorted(idx, i)
+        if k == 0 or k == len(idx):
+            continue
+        a, b = idx[k - 1], idx[k]
+        if not group[a] == group[b] == group[i]:
+            continue
+        dt = t[b] - t[a]
+        w = (t[i] - t[a]) / dt
+        rot = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([T[a, :3, :3], T[b, :3, :3]])))([w]).as_matrix()[0]
+        out[i, :3, :3] = rot
+        pa, pb = T[a, :3, 3], T[b, :3, 3]
+        va, vb = velocity(k - 1, -1), velocity(k, +1)
+        if va is None or vb is None:
+            out[i, :3, 3] = (1 - w) * pa + w * pb
+        else:
+            h00, h10, h01, h11 = 2 * w**3 - 3 * w**2 + 1, w**3 - 2 * w**2 + w, -2 * w**3 + 3 * w**2, w**3 - w**2
+            out[i, :3, 3] = h00 * pa + h10 * dt * va + h01 * pb + h11 * dt * vb
+        done[i] = True
+    return out, done
     for i in np.flatnonzero(~known):
         k = np.searchsorted(idx, i)
         if k == 0 or k == len(idx):
