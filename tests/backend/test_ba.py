@@ -372,3 +372,43 @@ def test_rgbd_depth_outlier_can_stay_a_mono_observation():
     on = local_bundle_adjustment(prob, rgbd, BackendConfig(rgbd_depth_outliers_as_mono=True))
     assert on.depth_only[bad_depth] and not on.depth_only[bad_pixel]
     assert not on.depth_only[on.inliers].any() and on.depth_only.sum() <= 2
+
+
+def _linked_scene(rng, link_error_m: float = 0.0):
+    """full_scene whose keyframe 5 observes nothing (a dense-step keyframe: too few features), tied to keyframe 4
+    by a PoseLink (1 mm / 0.05 deg); everything but keyframes 0 and 1 perturbed."""
+    from vslam.mapping.map import PoseLink
+
+    poses, pts, prob = S.full_scene(rng, stereo_frac=0.5)
+    prob.fixed = {0, 1}
+    keep = prob.obs_kf != 5
+    prob.obs_kf, prob.obs_pt, prob.obs_uv, prob.obs_ur = (a[keep] for a in (prob.obs_kf, prob.obs_pt, prob.obs_uv, prob.obs_ur))
+    T45 = inv_T(poses[4]) @ poses[5]
+    T45[:3, 3] += np.array([link_error_m, 0.0, 0.0])
+    cov = np.diag(np.r_[np.full(3, np.radians(0.05)), np.full(3, 1e-3)] ** 2)
+    p = S.perturb(rng, prob, trans_m=0.03, rot_deg=1.5, pt_m=0.05)
+    return poses, pts, p, PoseLink(4, 5, T45, cov)
+
+
+def test_local_ba_pose_link_places_a_keyframe_without_observations():
+    rng = np.random.default_rng(31)
+    poses, pts, p, link = _linked_scene(rng)
+    start5 = p.poses[5].copy()
+    r0 = local_bundle_adjustment(p, S.CAM)
+    np.testing.assert_array_equal(r0.poses[5], start5)  # nothing measures it: returned unchanged
+    p.links = [link]
+    r = local_bundle_adjustment(p, S.CAM)
+    t, rot, pt = _max_errors(r, poses, pts)
+    assert t < 1e-3 and rot < 0.01 and pt < 1e-2  # keyframe 5 included: placed by its link to the adjusted 4
+    assert S.pose_error(start5, poses[5])[0] > 0.02
+
+
+def test_local_ba_wrong_pose_link_is_bounded_by_the_observations():
+    """A link 0.3 m wrong (300 sigma) moves the well-observed keyframe 4 by well under a millimetre (Huber)."""
+    rng = np.random.default_rng(32)
+    poses, pts, p, link = _linked_scene(rng, link_error_m=0.3)
+    p.links = [link]
+    r = local_bundle_adjustment(p, S.CAM)
+    for k in (2, 3, 4):
+        assert S.pose_error(r.poses[k], poses[k])[0] < 5e-4
+    assert abs(S.pose_error(r.poses[5], poses[5])[0] - 0.3) < 0.01  # the link is all keyframe 5 has

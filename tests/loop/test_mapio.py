@@ -118,3 +118,18 @@ def test_sensor_header_is_compared_on_load(tmp_path):
     with pytest.raises(MapFileError, match="with 'orb' keypoints, this run uses 'convpoint'"):
         check_sensor("m.npz", {"sensor": rgbd}, sensor_header("rgbd", cam, "convpoint"))
     check_sensor("m.npz", {}, rgbd)  # a file from before the header held the sensor: accepted, with a warning
+
+
+def test_pose_links_round_trip(tmp_path):
+    from vslam.mapping.map import PoseLink
+
+    st, _, _ = room_map()
+    ks = sorted(st.map.keyframes)
+    T = inv_T(st.map.keyframes[ks[0]].T_world_cam) @ st.map.keyframes[ks[1]].T_world_cam
+    cov = np.diag(np.arange(1.0, 7.0)) * 1e-4
+    st.map.links.append(PoseLink(ks[0], ks[1], T, cov))
+    m2 = load_map(save_slam_map(st, tmp_path / "m.vslam.npz")).map
+    assert [(ln.a, ln.b) for ln in m2.links] == [(ks[0], ks[1])]
+    np.testing.assert_array_equal(m2.links[0].T_a_b, T)
+    np.testing.assert_array_equal(m2.links[0].cov, cov)
+    st.map.links.clear()  # room_map() is cached: leave it as it was

@@ -131,6 +131,17 @@ def test_long_stretch_moves_the_reference_and_features_resume():
     assert "predicted" not in status and "lost" not in status, status
     assert all(s == "tracked" for s in status[106:]), status[100:]
     assert ate <= 0.01, ate  # measured 0.23 % of 6.1 m
+    # keyframes made from dense frames are tied by PoseLinks to the keyframe the step last referenced (through
+    # the frames it re-referenced on, compounded), the last one ending after the stretch; the ground truth's
+    # relative pose lies inside each link's covariance
+    gt, kfs = seq.groundtruth().poses, st.map.keyframes
+    spans = [(kfs[ln.a].frame_index, kfs[ln.b].frame_index) for ln in st.map.links]
+    assert spans and max(b for _, b in spans) >= 100, spans  # measured (48, 68), (68, 105)
+    for ln in st.map.links:
+        T_true = inv_T(gt[kfs[ln.a].frame_index]) @ gt[kfs[ln.b].frame_index]
+        err = np.linalg.norm(ln.T_a_b[:3, 3] - T_true[:3, 3])
+        sigma = np.sqrt(np.trace(ln.cov[3:, 3:]))
+        assert err < 3 * sigma and sigma >= 0.02 * np.sqrt(3), (err, sigma)
 
 
 def test_generator_options_of_this_scene():

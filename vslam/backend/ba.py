@@ -206,6 +206,9 @@ class BAProblem(_CompactPoints):
     obs_ur: np.ndarray
     obs_sigma: np.ndarray | None = None
     lines: LineProblem | None = None  # line landmarks (issue 6, ``vslam.backend.line_ba``), None: points only
+    # relative poses between keyframes of ``poses`` (``vslam.mapping.map.PoseLink``: a, b, T_a_b, cov), each a
+    # robust BetweenFactorPose3 in both LM rounds; a keyframe they name is optimised even with no observation
+    links: list | None = None
 
 
 @dataclass
@@ -248,12 +251,16 @@ def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: Backe
         result.ms = {"build": 0.0, "optimize": 0.0, "classify": 0.0, "total": 1e3 * (time.perf_counter() - t0)}
         return result
     used_k, used_p = np.unique(win.ik[idx]), np.unique(win.ip[idx])  # sorted, like GTSAM's key order
-    if cfg.solver == "numpy" and problem.lines is None and len(used_k) <= NUMPY_MAX_POSES:
+    links = [ln for ln in problem.links or () if ln.a != ln.b and ln.a in problem.poses and ln.b in problem.poses]
+    linked = {k for ln in links for k in (ln.a, ln.b)}
+    used_k = np.union1d(used_k, np.searchsorted(win.kf_ids, sorted(linked))).astype(np.int64)
+    if cfg.solver == "numpy" and problem.lines is None and not links and len(used_k) <= NUMPY_MAX_POSES:
         return _local_ba_numpy(problem, camera, cfg, win, valid, closed, idx, used_k, result, t0)
     builder = fx.FactorBuilder(camera, cfg.huber_k)
     facs = builder.factors(win.kf[idx], win.pt[idx], win.meas[idx], win.stereo[idx], win.sigma[idx])
     anchors = _anchors(problem.fixed, win.kf_ids[used_k].tolist())
     holds = [builder.hold(fx.X(k), problem.poses[k]) for k in anchors]
+    holds += [builder.between(ln.a, ln.b, ln.T_a_b, ln.cov) for ln in links]
     values = _initial_values(win.Twc0[used_k], win.P0[used_p], win.kf_ids[used_k], win.pt_ids[used_p])
     line_facs, line_ids = [], []
     if problem.lines is not None:  # line factors join both LM rounds (their Huber kernel is per observation)
@@ -270,7 +277,7 @@ def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: Backe
     t3 = time.perf_counter()
 
     if cfg.refine_iterations > 0 and keep.any():  # ORB-SLAM2: drop the outlier factors, optimise again
-        start = _without(est, _orphans(win, idx[keep], used_k, used_p, anchors))
+        start = _without(est, _orphans(win, idx[keep], used_k, used_p, set(anchors) | linked))
         graph2 = _graph(list(itertools.compress(facs, keep.tolist())) + holds + factors_within(line_facs, start))
         est2, more, _ = _levenberg_marquardt(graph2, start, cfg.refine_iterations, schur=True)
         est = gtsam.Values(est)
@@ -409,8 +416,9 @@ def _backprojected(win: DenseWindow, obs: np.ndarray, Twc: np.ndarray, P: np.nda
     return P
 
 
-def _orphans(win: DenseWindow, kept: np.ndarray, used_k, used_p, anchors: list[int]) -> list[int]:
-    """Keys of variables with no factor left once only the observations ``kept`` (indices) remain."""
+def _orphans(win: DenseWindow, kept: np.ndarray, used_k, used_p, anchors: set[int]) -> list[int]:
+    """Keys of variables with no factor left once only the observations ``kept`` (indices) remain (``anchors``:
+    keyframes with other factors: holds, links)."""
     lost_p = np.setdiff1d(used_p, win.ip[kept])
     lost_k = [k for k in win.kf_ids[np.setdiff1d(used_k, win.ik[kept])].tolist() if k not in anchors]
     return [fx.X(k) for k in lost_k] + [fx.L(int(j)) for j in win.pt_ids[lost_p].tolist()]

@@ -66,6 +66,13 @@ class FactorBuilder:
             model = self._models[(6, FIXED_WITH_PRIOR_SIGMA)] = gtsam.noiseModel.Isotropic.Sigma(6, FIXED_WITH_PRIOR_SIGMA)
         return gtsam.PriorFactorPose3(key, pose3(T), model)
 
+    def between(self, a: int, b: int, T_a_b: np.ndarray, cov: np.ndarray) -> gtsam.NonlinearFactor:
+        """Robust relative-pose factor X(a)^-1 X(b) = T_a_b of covariance ``cov`` (6,6: rotation, translation of
+        the right perturbation; a wrong measurement is then bounded like a wrong observation)."""
+        base = gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, np.float64))
+        model = gtsam.noiseModel.Robust.Create(self._huber, base)
+        return gtsam.BetweenFactorPose3(X(a), X(b), pose3(T_a_b), model)
+
     def factors(
         self, kf: np.ndarray, pt: np.ndarray, meas: np.ndarray, stereo: np.ndarray, sigma: np.ndarray
     ) -> list[gtsam.NonlinearFactor]:

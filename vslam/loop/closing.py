@@ -276,10 +276,10 @@ class LoopCloser:
 
 def global_bundle_adjust(m: Map, stereo_cam: StereoCamera, backend: BackendConfig, iterations: int = 10,
                          min_obs: int = 20) -> None:
-    """BA over every keyframe and point (first keyframe fixed, and those seeing fewer than ``min_obs`` points)
-    with the back end's local-BA machinery: after a loop correction or a map merge moved keyframes rigidly with
-    their points, BA re-fits both to the observations, including the ones fused across the loop or the seam.
-    Outlier observations are removed as in local BA."""
+    """BA over every keyframe and point (first keyframe fixed, and those seeing fewer than ``min_obs`` points
+    unless a ``PoseLink`` holds them) with the back end's local-BA machinery: after a loop correction or a map
+    merge moved keyframes rigidly with their points, BA re-fits both to the observations, including the ones
+    fused across the loop or the seam. Outlier observations are removed as in local BA."""
     pts = np.array(sorted(m.points), np.int64)
     okf, opt, ouv, our = [], [], [], []
     for pid in pts.tolist():
@@ -289,10 +289,11 @@ def global_bundle_adjust(m: Map, stereo_cam: StereoCamera, backend: BackendConfi
     if not okf:
         return
     n_obs = np.bincount(np.array(okf), minlength=max(m.keyframes) + 1)
-    fixed = {min(m.keyframes)} | {k for k in m.keyframes if n_obs[k] < min_obs}
+    linked = {k for ln in m.links for k in (ln.a, ln.b)}  # a dense-step keyframe is held by its links instead
+    fixed = {min(m.keyframes)} | {k for k in m.keyframes if n_obs[k] < min_obs and k not in linked}
     problem = BAProblem({k: f.T_world_cam for k, f in m.keyframes.items()}, fixed,
                         {p: m.points[p].xyz for p in pts.tolist()}, np.array(okf), np.array(opt),
-                        np.array(ouv).reshape(-1, 2), np.array(our, dtype=np.float64))
+                        np.array(ouv).reshape(-1, 2), np.array(our, dtype=np.float64), links=list(m.links) or None)
     res = local_bundle_adjustment(problem, stereo_cam, dataclasses.replace(backend, max_iterations=iterations))
     m.apply_adjustment(res.poses, res.points, res.inliers, okf, opt, fixed)
     log.debug("global BA: %d keyframes, %d observations, %.0f ms", len(m.keyframes), len(okf), res.ms["total"])

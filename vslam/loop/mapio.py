@@ -24,7 +24,7 @@ import numpy as np
 from vslam.errors import VslamError
 from vslam.features.base import Features
 from vslam.loop.database import KeyframeDatabase
-from vslam.mapping.map import KeyFrame, Map, MapPoint
+from vslam.mapping.map import KeyFrame, Map, MapPoint, PoseLink
 
 FORMAT = "vslam-map"
 FORMAT_VERSION = 1
@@ -94,6 +94,9 @@ def save_map(path: str | Path, m: Map, database: KeyframeDatabase, descriptor_ki
         "pt_desc": np.array([p.descriptor for p in pts]),
         "pt_first_kf": np.array([p.first_kf for p in pts], np.int64),
         "pt_visible": np.array([[p.n_visible, p.n_found] for p in pts], np.int64).reshape(-1, 2),
+        "link_kf": np.array([(ln.a, ln.b) for mm in maps.values() for ln in mm.links], np.int64).reshape(-1, 2),
+        "link_T": np.array([ln.T_a_b for mm in maps.values() for ln in mm.links], np.float64).reshape(-1, 4, 4),
+        "link_cov": np.array([ln.cov for mm in maps.values() for ln in mm.links], np.float64).reshape(-1, 6, 6),
     }
     from vslam.outputs import atomic_open
 
@@ -194,5 +197,13 @@ def _rebuild(path: Path, z: dict, header: dict) -> LoadedMap:
         if len(home) != 1:
             raise MapFileError(f"{path}: point {pid} is observed in maps {sorted(home)}")
         maps[home.pop()][0].points[pid] = mp
+    links = z.get("link_kf", np.zeros((0, 2), np.int64)).tolist()  # files written before links have none
+    if links and not len(links) == len(z["link_T"]) == len(z["link_cov"]):
+        raise MapFileError(f"{path}: {len(links)} pose links but {len(z['link_T'])} poses and "
+                           f"{len(z['link_cov'])} covariances")
+    for (a, b), T, cov in zip(links, z.get("link_T", ()), z.get("link_cov", ())):
+        if of.get(a) != of.get(b) or a not in of:
+            raise MapFileError(f"{path}: pose link {a}->{b} joins keyframes of different or no maps")
+        maps[of[a]][0].links.append(PoseLink(a, b, T.copy(), cov.copy()))
     cur_map, cur_db = maps.pop(current)
     return LoadedMap(cur_map, cur_db, header, current, maps)

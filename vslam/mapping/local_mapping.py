@@ -332,6 +332,9 @@ class LocalMapper:
         self._anchor_window(kf_id, window, fixed, pts)
         if not window:
             return None
+        free = set(window)
+        links = [ln for ln in m.links if ln.a in free or ln.b in free]  # dense-step relative poses (PoseLink)
+        fixed += sorted({k for ln in links for k in (ln.a, ln.b)} - free - set(fixed))
         allk = sorted(set(window) | set(fixed))
         # every observation of a window point in a window or fixed keyframe, read from the keyframes' point
         # arrays (the map keeps them equal to the points' observations), ordered by point, then keyframe
@@ -350,7 +353,8 @@ class LocalMapper:
         problem = BAProblem({k: m.keyframes[k].T_world_cam for k in allk}, set(fixed),
                             {int(p): m.points[int(p)].xyz for p in pts.tolist()}, okf, opt,
                             ouv.reshape(-1, 2), our.astype(np.float64),
-                            obs_sigma=self.backend.pixel_sigma * osg if self.cfg.level_sigma else None)
+                            obs_sigma=self.backend.pixel_sigma * osg if self.cfg.level_sigma else None,
+                            links=links or None)
         if self.lines is not None:
             problem.lines = self.lines.ba_problem(allk)
         return problem, okf, opt, fixed, chain

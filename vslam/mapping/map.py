@@ -62,6 +62,18 @@ class MapPoint:
         return self.n_found / max(self.n_visible, 1)
 
 
+@dataclass(frozen=True, eq=False)
+class PoseLink:
+    """A relative pose measured between keyframes ``a`` and ``b`` without map points (the dense depth step):
+    T_a_b (4,4) and its covariance (6,6: rotation rad, translation m, right perturbation of T_a_b, as a GTSAM
+    BetweenFactorPose3). Local and global BA hold the two keyframes to it beside whatever points they share."""
+
+    a: int
+    b: int
+    T_a_b: np.ndarray
+    cov: np.ndarray
+
+
 class Map:
     """Keyframes and map points with consistent two-way bookkeeping of observations."""
 
@@ -74,6 +86,7 @@ class Map:
         # call ``touch``): what tracking derived from the map stays valid while it is unchanged.
         self.revision = 0
         self._local_memo: tuple | None = None  # (revision, arguments, result) of the last ``local_map``
+        self.links: list[PoseLink] = []  # keyframe-to-keyframe relative poses (``PoseLink``)
 
     def touch(self) -> None:
         """Mark the map changed (for code that moves points or keyframes directly)."""
@@ -102,6 +115,14 @@ class Map:
         for p, mp in other.points.items():
             mp.xyz = scale * (R @ mp.xyz) + t
             self.points[p] = mp
+        for ln in other.links:  # a rigid move keeps relative poses; a scale stretches their translation
+            T = ln.T_a_b.copy()
+            T[:3, 3] *= scale
+            cov = ln.cov.copy()
+            cov[3:, :] *= scale
+            cov[:, 3:] *= scale
+            self.links.append(PoseLink(ln.a, ln.b, T, cov))
+        other.links = []
         self._next_kf = max(self._next_kf, other._next_kf)
         self._next_pt = max(self._next_pt, other._next_pt)
         other.keyframes, other.points = {}, {}
@@ -310,4 +331,5 @@ class Map:
 
     def stats(self) -> dict[str, int]:
         n_obs = sum(len(p.observations) for p in self.points.values())
-        return {"keyframes": len(self.keyframes), "points": len(self.points), "observations": n_obs}
+        return {"keyframes": len(self.keyframes), "points": len(self.points), "observations": n_obs,
+                "pose_links": len(self.links)}

@@ -30,7 +30,7 @@ from vslam.geometry.se3 import inv_T
 from vslam.loop.config import LoopConfig
 from vslam.mapping.line_map import LineSlam
 from vslam.mapping.local_mapping import LocalMapper, MappingConfig
-from vslam.mapping.map import Map
+from vslam.mapping.map import Map, PoseLink
 from vslam.tracking.atlas import Atlas, AtlasConfig
 from vslam.tracking.baseline import FrameEstimate
 from vslam.tracking.dense import DenseConfig, DenseOdometry
@@ -326,6 +326,9 @@ class SlamTracker:
             if want:
                 kf = self.map.add_keyframe(frame.index, frame.timestamp, self.T_world_cam, feats, depth, ur)
                 if self.dense is not None:
+                    if res.method == "dense" and self.dense.last_link is not None:  # BA keeps the ICP's motion
+                        ref, T_ref_cam, cov = self.dense.last_link
+                        self.map.links.append(PoseLink(ref, kf.id, T_ref_cam, cov))
                     self.dense.set_reference(kf.id, kf.T_world_cam, frame.depth, frame.image)
                 if self.vio is not None:
                     self.vio.new_keyframe(kf.id)
