@@ -48,6 +48,11 @@ class TrackingConfig:
     # and the detector's masks 0.0112 -> 0.0214 m (the retrained detector: 0.0093 -> 0.0457 m); the whole local
     # map outvotes them. Hence off by default.
     first_round_last_frame: bool = False
+    # Motion-model round: when its PnP pose moves the local map's projections (median) farther than the search
+    # radius from the prediction's, the prediction failed: the reference keyframe's descriptor matching gives the
+    # pose, the projection step's only if it fails (``Tracker.track_projection``). Wide baselines only: with a
+    # good prediction it never fires (TUM teddy and KITTI 07 at full rate: the same poses).
+    far_prediction_reference: bool = True
     max_hamming: int = 64  # bits (of 256)
     ratio: float = 0.9  # best / second best descriptor distance within the radius
     min_matches: int = 30  # fewer projection matches -> descriptor matching against keyframes
@@ -99,6 +104,7 @@ class TrackResult:
     n_inliers: int = 0
     method: str = ""
     cov: np.ndarray | None = None  # (6,6) pose covariance of the refinement (``pose_covariance``), None if not measured
+    tried_reference: bool = False  # the projection step fell back on the reference keyframe, which failed
 
 
 def project(T_world_cam: np.ndarray, X: np.ndarray, cam: PinholeCamera, min_depth: float = 1e-3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -202,6 +208,14 @@ class Tracker:
         self._local = (key, local)
         return local
 
+    def _moved_px(self, T_a: np.ndarray, T_b: np.ndarray, xyz: np.ndarray) -> float:
+        """Median image displacement (px) of the points ``xyz`` (P,3) visible from both poses, from ``T_a`` to
+        ``T_b``; 0 when none is."""
+        uv_a, _, vis_a = project(T_a, xyz, self.cam, self.cfg.min_depth)
+        uv_b, _, vis_b = project(T_b, xyz, self.cam, self.cfg.min_depth)
+        both = vis_a & vis_b
+        return float(np.median(np.linalg.norm(uv_b[both] - uv_a[both], axis=1))) if both.any() else 0.0
+
     def _gather(self, ids: np.ndarray) -> LocalPoints:
         return LocalPoints(ids, self.map.points_xyz(ids), self.map.descriptors(ids))
 
@@ -253,11 +267,23 @@ class Tracker:
         T, inl = self.pnp(feats.uv[mk], X)
         if T is None:
             return None
+        far = self.cfg.far_prediction_reference and self._moved_px(T_pred, T, local.xyz) > radius
+        if far:
+            # The pose moved the local map farther than the search radius from where the prediction put it: the
+            # true matches of most points lay outside their windows, and those found are where the prediction
+            # happened to be close (one image region, one depth), a subset that may pin the pose badly and that the
+            # tight second round cannot leave (TUM teddy every 15th frame: background points 4-6 m away only, the
+            # pose 10 cm off). The reference keyframe's descriptor matches do not depend on the prediction.
+            ref = self.track_keyframe(feats, ur, ref_kf, tree)
+            if ref is not None and ref.ok:
+                return ref
         # One least-squares round on the RANSAC inliers (~1 ms) before the tight second-round search: the
         # LO-RANSAC pose alone put the stereo loop room at 0.0248-0.0273 m (RANSAC seeds 0-2) against 0.0200-0.0201 m
         # with pycolmap's Ceres refinement (~4 ms a frame) and 0.0203 / 0.0206 m with this round (TUM 0.0041 m).
         T, _ = optimize_pose(T, X[inl], feats.uv[mk[inl]], ur[mk[inl]], self.stereo_cam, self._one_round)
-        return self._finish_local(T, feats, ur, ref_kf, tree, "projection", local)  # the map has not changed since
+        res = self._finish_local(T, feats, ur, ref_kf, tree, "projection", local)  # the map has not changed since
+        res.tried_reference = far
+        return res
 
     def track_keyframe(self, feats: Features, ur: np.ndarray, kf_id: int, tree: cKDTree, method: str = "reference") -> TrackResult | None:
         """Descriptor matching against one keyframe's map points, PnP, then the local-map round."""
@@ -288,7 +314,7 @@ class Tracker:
         radius = self.cfg.radius_lost_px if after_loss else self.cfg.radius_px
         use_last = self.cfg.first_round_last_frame and not after_loss
         res = self.track_projection(feats, ur, T_pred, ref_kf, radius, tree, last_ids if use_last else None)
-        if res is None or not res.ok:
+        if res is None or (not res.ok and not res.tried_reference):
             res = self.track_keyframe(feats, ur, ref_kf, tree)
         if (res is None or not res.ok) and after_loss:
             for kf_id in sorted(self.map.keyframes, reverse=True)[: self.cfg.reloc_keyframes]:
