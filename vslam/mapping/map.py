@@ -109,6 +109,8 @@ class Map:
             T[:3, :3] = R @ kf.T_world_cam[:3, :3]
             T[:3, 3] = scale * (R @ kf.T_world_cam[:3, 3]) + t
             kf.T_world_cam = T
+            if kf.velocity is not None:  # visual-inertial: a world-frame vector
+                kf.velocity = scale * (R @ kf.velocity)
             if scale != 1.0:
                 kf.depth = kf.depth * scale
             self.keyframes[k] = kf

@@ -161,11 +161,12 @@ class SlamTracker:
         self._lines_pool = ThreadPoolExecutor(1, thread_name_prefix="lines") if self.lines is not None and beside else None
         self._line_feats, self._line_ids = None, None
         self._pre_init_lines: dict[int, LineFeatures] = {}  # monocular: segments of frames before the map exists
-        # New maps need a map to grow (not localize_only) and a pose that the IMU state does not pin to the old
-        # map (visual-inertial: the IMU bridges the blackout instead; re-initialising it per map is not built).
+        # New maps need a map to grow (not localize_only). Monocular-inertial maps take their scale and gravity
+        # from the IMU initialisation, which would have to run again for every map: not built, the IMU bridges.
         self.map_id = 0
         self.atlas = (Atlas(cfg.atlas, self.cam, self.stereo_cam, cfg.tracking, cfg.backend)
-                      if cfg.atlas.enabled and not cfg.localize_only and self.vio is None else None)
+                      if cfg.atlas.enabled and not cfg.localize_only and (self.vio is None or sensor != "mono")
+                      else None)
         if self.atlas is not None:  # frames referenced to keyframes of an archived map follow them there
             self.frames.archived = self.atlas.maps
         self.loop = None
@@ -542,8 +543,10 @@ class SlamTracker:
         log.debug("frame %d not tracked; pose predicted", frame.index)
         lost_s = self._lost_for_now = self._lost_for(frame.timestamp)
         if lost_s >= self.cfg.atlas.new_map_after_s:
-            # near where the camera was last seen: the new map's frame continues the old one's
-            if self._new_map(frame, feats, depth, ur, T_last):
+            # the new map's frame continues the old one's: from where the IMU puts the camera, else where it was
+            # last seen
+            T0 = T_pred if self.vio is not None and self.vio.predicting else T_last
+            if self._new_map(frame, feats, depth, ur, T0):
                 est.tracked, est.status, est.pose_cov = True, "new_map", np.zeros((6, 6))
             elif lost_s > self.cfg.atlas.bridge_s:
                 est.status = "lost"  # predicted no longer: no pose
@@ -558,6 +561,8 @@ class SlamTracker:
         """Make ``m`` the map every stage works on."""
         self.map = self.tracker.map = self.mapper.map = self.frames.map = m
         self.mapper.recent = [p for p in self.mapper.recent if p in m.points]
+        if self.vio is not None:
+            self.vio.map = m
         self._last_ids = None
         if self.loop is not None:
             self.loop.map = m
@@ -586,6 +591,8 @@ class SlamTracker:
             self.loop.db = KeyframeDatabase(self.loop.descriptor.dim)
             self.loop._groups = []
         self._use_map(self.map.successor())
+        if self.vio is not None:
+            self.vio.new_map()
         self.ref_kf, self.velocity, self._t_tracked = None, np.eye(4), None
         log.info("frame %d: tracking lost; map %d started", frame.index, self.map_id)
         if self.mono_init is None:

@@ -228,6 +228,21 @@ class Vio:
         elif self.nav is not None:
             kf.velocity, kf.bias = self.nav.v.copy(), self.nav.bias.copy()
 
+    @property
+    def predicting(self) -> bool:
+        """The IMU propagated the state to the frame being tracked (``predict`` gave a pose)."""
+        return self._pred is not None
+
+    def new_map(self) -> None:
+        """Tracking starts a new map (``vslam.tracking.atlas``) in the same gravity-aligned world frame: the IMU
+        chain restarts at its first keyframes (velocity from vision, bias the last estimated), as after a stretch
+        without IMU data; an initialisation not yet done starts over on the new map's keyframes."""
+        self.marginals = {}
+        if self.ready:
+            self._chain_off(restart=True)
+        else:
+            self._t_first, self._align_tried = None, 0
+
     def _chain_off(self, restart: bool) -> None:
         """No IMU prediction and no IMU factors from now on; ``restart``: the next keyframe starts a new chain (else
         it waits for good data, ``add_imu``)."""
