@@ -3,7 +3,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.vslam-installed
 
-.PHONY: install demo test bench clean
+.PHONY: install demo test wheel-check bench clean
 
 $(STAMP): pyproject.toml scripts/setup.sh
 	VENV=$(VENV) bash scripts/setup.sh
@@ -15,6 +15,10 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/python -m pytest -q
+
+# the wheel as `pip install .` builds it, installed non-editable in a fresh venv, run from outside the checkout
+wheel-check: $(STAMP)
+	VENV=$(VENV) bash scripts/check_wheel.sh
 
 bench: $(STAMP)
 	$(BIN)/vslam bench --suite configs/bench.yaml

@@ -49,15 +49,13 @@ def test_yaml_file_errors(tmp_path):
         load_config(PipelineConfig, tmp_path / "missing.yaml")
 
 
-def test_every_shipped_config_loads():
-    from vslam.paths import REPO_ROOT
+def test_every_preset_loads():
+    from vslam.resources import preset_names, preset_path
 
-    files = sorted((REPO_ROOT / "configs").glob("*.yaml"))
-    assert len(files) >= 5
-    for f in files:
-        if f.name == "bench.yaml" or f.name.startswith("train_"):
-            continue
-        PipelineConfig.load(f)
+    names = preset_names()
+    assert {"synthetic", "tum_rgbd", "kitti_mono", "euroc_stereo_inertial"} <= set(names)
+    for name in names:
+        PipelineConfig.load(preset_path(name))
 
 
 def test_parse_overrides():

@@ -657,7 +657,7 @@ def _place_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     lines = md_section("Place recognition (issue 7)",
                        "A query counts when the database holds a frame of the same place; recalled at k when one of its k "
                        "most similar database frames is one. BoW: tf-idf of 512 ORB words on the tracker's keypoints (full "
-                       "image); VLADNet: models/vladnet_v1.pt on the image (its model card says what it was trained on: not "
+                       "image); VLADNet: vslam/models/vladnet_v1.pt on the image (its model card says what it was trained on: not "
                        "these sets).",
                        ["row", "set", "descriptor", "queries", "R@1", "R@5", "R@10", "ms / image", "target"])
     for row, r in rows:

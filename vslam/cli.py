@@ -67,6 +67,7 @@ def _reclaim_sigterm() -> None:
 def cmd_run(args: argparse.Namespace) -> int:
     from vslam.config import deep_merge, parse_overrides
     from vslam.pipeline import Pipeline, PipelineConfig
+    from vslam.resources import preset_path
 
     _reclaim_sigterm()
 
@@ -78,6 +79,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         ds["kind"] = args.kind
     if args.sensor:
         ds["sensor"] = args.sensor
+    ds.update({k: v for k, v in (("camera", args.camera), ("times", args.times), ("fps", args.fps)) if v is not None})
     if args.max_frames is not None:
         if args.max_frames <= 0:
             raise ConfigError(f"--max-frames must be a positive number of frames, got {args.max_frames}")
@@ -89,7 +91,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.no_eval:
         over["eval"] = {"enabled": False}
     over = deep_merge(over, parse_overrides(args.set or []))
-    cfg = PipelineConfig.load(args.config, over)
+    cfg = PipelineConfig.load(preset_path(args.preset) if args.preset else args.config, over)
     if args.data and not args.kind and cfg.dataset.kind == "synthetic":
         # --data names a folder: a config made for the built-in sequence then reads it by its layout. A config
         # made for one dataset kind keeps it, and a folder of another layout is an error (open_dataset).
@@ -122,6 +124,17 @@ def cmd_demo(args: argparse.Namespace) -> int:
     finally:
         close()
     _summary(result, Path(args.out))
+    return 0
+
+
+def cmd_presets(args: argparse.Namespace) -> int:
+    from vslam.resources import preset_description, preset_names, presets_dir
+
+    names = preset_names()
+    width = max(map(len, names))
+    for name in names:
+        print(f"{name:<{width}}  {preset_description(name)}")
+    print(f"\n`vslam run --preset NAME`; to change one, copy it from {presets_dir()} and pass the copy with -c")
     return 0
 
 
@@ -185,9 +198,15 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="cmd", required=True)
 
     r = sub.add_parser("run", help="run on a dataset sequence (or the synthetic default)")
-    r.add_argument("--config", "-c", help="YAML config (configs/*.yaml)")
-    r.add_argument("--data", "-d", help="sequence folder (TUM, KITTI or EuRoC layout); relative paths also tried under $VSLAM_DATA")
-    r.add_argument("--kind", choices=["auto", "tum", "kitti", "euroc", "synthetic"])
+    which = r.add_mutually_exclusive_group()
+    which.add_argument("--config", "-c", help="YAML config file, or a preset's name")
+    which.add_argument("--preset", help="a shipped config by name (`vslam presets` lists them)")
+    r.add_argument("--data", "-d", help="sequence folder (TUM, KITTI or EuRoC layout), image folder, video or ROS bag "
+                                        "(docs/inputs.md); relative paths also tried under $VSLAM_DATA")
+    r.add_argument("--kind", choices=["auto", "tum", "kitti", "euroc", "synthetic", "images", "video", "bag"])
+    r.add_argument("--camera", help="camera file (camera.yaml or ORB-SLAM3 settings) of an image folder, video or bag")
+    r.add_argument("--times", help="frame times of an image folder or video: one timestamp per line")
+    r.add_argument("--fps", type=float, help="frame rate of an image folder or video (times = index / fps)")
     r.add_argument("--sensor", choices=["rgbd", "stereo", "mono"])
     r.add_argument("--max-frames", type=int)
     r.add_argument("--out", "-o", help="output folder (default from config: runs/latest)")
@@ -200,6 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", "-o", default="runs/demo")
     d.add_argument("--frames", type=int, default=300)
     d.set_defaults(fn=cmd_demo)
+
+    sub.add_parser("presets", help="list the shipped configs (presets) with what each runs").set_defaults(fn=cmd_presets)
 
     e = sub.add_parser("eval", help="ATE/RPE/KITTI metrics of an estimate against ground truth")
     e.add_argument("est")

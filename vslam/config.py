@@ -17,6 +17,7 @@ from typing import Any, TypeVar
 import yaml
 
 from vslam.errors import ConfigError
+from vslam.resources import resolve_config
 
 C = TypeVar("C")
 
@@ -138,9 +139,11 @@ def parse_yaml(text: str, where: str) -> Any:
 
 
 def load_yaml(path: str | Path) -> dict[str, Any]:
-    path = Path(path)
+    """A YAML mapping from a file, or from a preset named instead of a file (``vslam.resources.resolve_config``)."""
+    path = resolve_config(path)
     if not path.is_file():
-        raise ConfigError(f"{path}: config file not found")
+        hint = " (nor a preset: `vslam presets` lists them)" if len(path.parts) == 1 else ""
+        raise ConfigError(f"{path}: config file not found{hint}")
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as e:
@@ -153,7 +156,8 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
 
 def load_config(cls: type[C], path: str | Path | None = None, overrides: dict[str, Any] | None = None,
                 nonnegative: bool = False) -> C:
-    """Defaults <- YAML file <- overrides (a nested dict, e.g. from --set a.b=c)."""
+    """Defaults <- YAML file or preset <- overrides (a nested dict, e.g. from --set a.b=c)."""
+    path = resolve_config(path) if path else None
     data: dict[str, Any] = load_yaml(path) if path else {}
     if overrides:
         data = deep_merge(data, overrides)

@@ -27,6 +27,7 @@ import numpy as np
 import yaml
 
 from vslam.config import from_dict, load_config, to_dict
+from vslam.data.bag import BagTopics
 from vslam.data.select import kept_indices, select_frames
 from vslam.data.trajectory import Trajectory, TrajectoryWriter, write_trajectory
 from vslam.data.types import Frame, Sequence
@@ -45,7 +46,7 @@ log = logging.getLogger(__name__)
 class DatasetConfig:
     """Which sequence to run. ``path`` relative to the data root ($VSLAM_DATA or ../shared/data) unless absolute."""
 
-    kind: Literal["auto", "tum", "kitti", "euroc", "synthetic"] = "synthetic"
+    kind: Literal["auto", "tum", "kitti", "euroc", "synthetic", "images", "video", "bag"] = "synthetic"
     path: str = ""
     sensor: Literal["rgbd", "stereo", "mono"] = "rgbd"
     max_diff: float = 0.02  # seconds, image/depth/ground-truth association
@@ -55,6 +56,12 @@ class DatasetConfig:
     stride: int = 1
     drop: tuple[tuple[int, int], ...] = ()
     synthetic: dict[str, Any] = field(default_factory=dict)  # SyntheticConfig fields when kind == synthetic
+    # your own data (kinds images, video, bag; docs/inputs.md): camera file ("" = camera.yaml beside the data),
+    # frame times from a times file or a rate (0 = from the file names / the container / the bag's stamps)
+    camera: str = ""
+    times: str = ""
+    fps: float = 0.0
+    topics: BagTopics = BagTopics()
 
     def __post_init__(self) -> None:
         kept_indices(0, self.stride, self.drop)  # the same checks as when they are applied
@@ -124,12 +131,22 @@ def open_dataset(cfg: DatasetConfig) -> Sequence:
     if layout is not None and kind != layout:
         raise ConfigError(f"dataset.kind is {kind!r} but {path} has the {layout} layout; use a config for "
                           f"{layout} (or --kind {layout} with --sensor)")
+    if kind is None and cfg.camera and path.is_dir():  # a plain image folder, its camera file given apart
+        kind = "images"
     if kind is None:
         kind = detect_kind(path)  # raises, naming what it looked for
     options: dict[str, Any] = {"sensor": cfg.sensor}
-    if kind in ("tum", "euroc"):  # KITTI frames are matched by index, not time
+    if kind in ("tum", "euroc", "images", "bag"):  # KITTI frames are matched by index, not time
         options["max_diff"] = cfg.max_diff
+    if kind in ("images", "video", "bag"):
+        options.update(camera=_data_path(cfg.camera), **({"topics": cfg.topics} if kind == "bag" else
+                                                          {"times": _data_path(cfg.times), "fps": cfg.fps}))
     return open_sequence(path, kind=kind, **options)
+
+
+def _data_path(p: str) -> Path | None:
+    """A user-given file path (camera, times) as given, None when empty."""
+    return Path(p).expanduser() if p else None
 
 
 def _layout(path: Path) -> str | None:

@@ -15,17 +15,21 @@ import pytest
 from tests.data.test_euroc import make_euroc
 from tests.data.test_kitti import make_kitti
 from tests.data.test_tum import make_tum
+from vslam.data.bag import BagSequence
 from vslam.data.euroc import EurocSequence
+from vslam.data.images import ImageFolderSequence
 from vslam.data.kitti import KittiSequence
 from vslam.data.registry import READERS, detect_kind, open_sequence
 from vslam.data.tum import TumRgbdSequence
+from vslam.data.video import VideoSequence
 from vslam.errors import ConfigError, DatasetError
 
 DOWNLOAD = Path(__file__).resolve().parents[2] / "datasets" / "download.py"
 
 
 def test_readers_table() -> None:
-    assert READERS == {"tum": TumRgbdSequence, "kitti": KittiSequence, "euroc": EurocSequence}
+    assert READERS == {"tum": TumRgbdSequence, "kitti": KittiSequence, "euroc": EurocSequence,
+                       "images": ImageFolderSequence, "video": VideoSequence, "bag": BagSequence}
 
 
 def test_detects_each_layout(tmp_path: Path) -> None:

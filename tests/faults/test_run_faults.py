@@ -209,7 +209,7 @@ def test_detector_weights_of_the_wrong_kind(cli, tmp_path, kind):
     w = tmp_path / "weights.pt"
     marker = tmp_path / "pwned"
     if kind == "convpoint":
-        w = Path("models/convpoint_v1.pt")
+        w = Path("vslam/models/convpoint_v1.pt")
     elif kind == "random":
         w.write_bytes(np.random.default_rng(0).bytes(4096))
     else:

@@ -11,7 +11,7 @@ from vslam.features.evaluate import (
 from vslam.features.homography import random_homography, warp_points
 from vslam.features.matching import BITS_PER_L2, descriptor_rows, match_mutual
 
-# models/convpoint_v1.pt on these 8 pairs (illumination): repeatability 0.669, MMA@3 0.855 (ORB over the full
+# vslam/models/convpoint_v1.pt on these 8 pairs (illumination): repeatability 0.669, MMA@3 0.855 (ORB over the full
 # benchmark: 0.672 / 0.621); a regression of the detector or the descriptor falls below these
 REPEATABILITY_MIN = 0.60
 MMA3_MIN = 0.78

@@ -91,7 +91,7 @@ def test_toy_training_reduces_the_loss_and_improves_recall(tmp_path) -> None:
 
 
 def test_shipped_weights_recall_on_held_out_places() -> None:
-    """models/vladnet_v1.pt loads offline and keeps its held-out recall (regression bounds under the measured)."""
+    """vslam/models/vladnet_v1.pt loads offline and keeps its held-out recall (regression bounds under the measured)."""
     from vslam.loop.descriptor import default_vladnet_path, make_place_descriptor
     from vslam.loop.retrieval import evaluate_held_out, held_out_sets
     from vslam.paths import data_root

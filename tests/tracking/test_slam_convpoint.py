@@ -12,7 +12,7 @@ from vslam.pipeline import Pipeline, PipelineConfig
 from vslam.tracking.slam import SlamConfig, SlamTracker
 
 CP = {"features": {"extractor": "convpoint"}}
-# models/convpoint_v1.pt in int8 (the CPU default, features.int8) measured 0.0064 m (float: 0.0044 m)
+# vslam/models/convpoint_v1.pt in int8 (the CPU default, features.int8) measured 0.0064 m (float: 0.0044 m)
 ATE_SYNTH_STEREO = 0.009
 ATE_TUM_60 = 0.006  # measured 0.0032 m in int8, 0.0037 m float (ORB: 0.0034 m, tests/tracking/test_slam_real.py)
 

@@ -99,7 +99,7 @@ class DynamicConfig:
     # box memory instead (validation, no following): 6.0 mm at 0.6 s, 6.2 at 1.2 s (2026-12-04).
     box_track_s: float = 0.0
     box_track_min_matches: int = 6  # fewer matches inside a followed box: it stays where it was this frame
-    weights: str = ""  # detector checkpoint (source=detector); "" = the shipped models/detector_se_gpu.pt
+    weights: str = ""  # detector checkpoint (source=detector); "" = the shipped vslam/models/detector_se_gpu.pt
     # more detector checkpoints whose boxes are masked too (an ensemble: the union of their boxes, each network
     # costs its own time). Recall is what masking needs: a person the detector misses leaks keypoints into the
     # map, and on TUM teddy composites with a close-up walker cut by the frame tracking then follows the walker.

@@ -17,6 +17,7 @@ import torch
 from vslam.dynamic.model import DetectorConfig, YoloDetector, decode, fuse_for_inference
 from vslam.errors import ConfigError
 from vslam.dynamic.nms import batched_nms
+from vslam.resources import shipped_model
 
 
 @dataclass
@@ -103,9 +104,9 @@ def save_checkpoint(path: str | Path, model: YoloDetector, names: list[str], hal
 
 
 def default_weights() -> Path:
-    """The shipped detector (models/detector_se_gpu.pt in the checkout; its card, and why this one, in
+    """The shipped detector (package data vslam/models/detector_se_gpu.pt; its card, and why this one, in
     models/README.md)."""
-    return Path(__file__).resolve().parents[2] / "models" / "detector_se_gpu.pt"
+    return shipped_model("detector_se_gpu.pt")
 
 
 def load_model(path: str | Path, field: str = "slam.dynamic.weights") -> tuple[YoloDetector, dict]:

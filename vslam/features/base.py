@@ -43,7 +43,7 @@ class FeatureConfig:
     grid_cols: int = 16
     grid_rows: int = 12
     # extractor "convpoint" (the learned detector + descriptor, issue 4)
-    weights: str = ""  # "" = the shipped models/convpoint_v1.pt
+    weights: str = ""  # "" = the shipped vslam/models/convpoint_v1.pt
     device: str = "auto"  # auto = CUDA when available
     conf_thresh: float = 0.005  # keypoint probability after NMS
     nms_radius: int = 4  # pixels

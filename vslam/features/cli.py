@@ -9,7 +9,7 @@ from pathlib import Path
 
 def add_cli(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("eval-features", help="ConvPoint vs ORB vs SIFT: homography benchmark + epipolar inliers on held-out frames")
-    p.add_argument("--weights", default="", help="ConvPoint weights (default models/convpoint_v1.pt)")
+    p.add_argument("--weights", default="", help="ConvPoint weights (default vslam/models/convpoint_v1.pt)")
     p.add_argument("--keypoints", type=int, default=1000, help="keypoints per image and method")
     p.add_argument("--pairs", type=int, default=2, help="random homographies per held-out image")
     p.add_argument("--images", type=int, default=12, help="held-out images per source")
@@ -21,7 +21,7 @@ def add_cli(sub: argparse._SubParsersAction) -> None:
 
 def add_quantize_cli(quantize_sub: argparse._SubParsersAction) -> None:
     p = quantize_sub.add_parser("keypoints", help="int8 activation ranges of ConvPoint from training images (features.int8)")
-    p.add_argument("--weights", default="", help="ConvPoint weights (default models/convpoint_v1.pt); ranges go beside them")
+    p.add_argument("--weights", default="", help="ConvPoint weights (default vslam/models/convpoint_v1.pt); ranges go beside them")
     p.add_argument("--per-source", type=int, default=8, help="training images per source (COCO128, TUM, KITTI, EuRoC)")
     p.set_defaults(fn=_cmd_quantize)
 

@@ -24,6 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from vslam.resources import shipped_model
+
 log = logging.getLogger(__name__)
 
 
@@ -291,8 +293,8 @@ def _load_extractor_model(path: str | Path, int8: bool) -> ConvPointNet | ConvPo
 
 
 def default_weights() -> Path:
-    """The shipped weights (models/convpoint_v1.pt in the checkout)."""
-    return Path(__file__).resolve().parents[2] / "models" / "convpoint_v1.pt"
+    """The shipped weights (package data vslam/models/convpoint_v1.pt, int8 ranges beside them)."""
+    return shipped_model("convpoint_v1.pt")
 
 
 class ConvPointExtractor:

@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class KeypointTrainConfig:
     out: str = "runs/train_keypoints/convpoint"
-    weights: str = ""  # also copy the final weights here (e.g. models/convpoint_v1.pt)
+    weights: str = ""  # also copy the final weights here (e.g. vslam/models/convpoint_v1.pt)
     # start from these ConvPoint weights and skip the shapes stage: a further round of homographic adaptation
     # with the joint detector, then joint training again (SuperPoint's second round)
     init: str = ""

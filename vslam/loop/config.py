@@ -15,8 +15,8 @@ class LoopConfig:
     # 2-core machine (BoW 8 ms, the rest verification of candidates).
     enabled: bool = False
     descriptor: str = "bow"  # key of make_place_descriptor: bow | vladnet
-    vocabulary: str = ""  # vocabulary file; "" = models/orb_bow_k512.npz
-    weights: str = ""  # VLADNet weights; "" = models/vladnet_v1.pt
+    vocabulary: str = ""  # vocabulary file; "" = vslam/models/orb_bow_k512.npz
+    weights: str = ""  # VLADNet weights; "" = vslam/models/vladnet_v1.pt
     # -- detection (ORB-SLAM LoopClosing::DetectLoop) --
     top_k: int = 5  # database candidates per keyframe
     min_score: float = 0.05  # absolute floor on the descriptor similarity

@@ -2,7 +2,7 @@
 
 ``PlaceDescriptor`` is the plug-in interface the keyframe database, loop
 detection and relocalisation use; the learned one is ``VladNetDescriptor``
-(``vslam.loop.vladnet``, weights models/vladnet_v1.pt). ``BowDescriptor`` is the non-learned
+(``vslam.loop.vladnet``, weights vslam/models/vladnet_v1.pt). ``BowDescriptor`` is the non-learned
 baseline: a tf-idf bag of ORB words (DBoW2's weighting) over the keypoints the
 tracker already extracted, so it costs one word assignment per keyframe.
 """
@@ -17,6 +17,7 @@ import numpy as np
 from vslam.errors import ConfigError
 from vslam.features.base import Features
 from vslam.loop.vocabulary import Vocabulary, default_vocabulary_path
+from vslam.resources import shipped_model
 
 
 class PlaceDescriptor(Protocol):
@@ -56,12 +57,12 @@ class BowDescriptor:
 
 
 def default_vladnet_path() -> Path:
-    return Path(__file__).resolve().parents[2] / "models" / "vladnet_v1.pt"
+    return shipped_model("vladnet_v1.pt")
 
 
 def make_place_descriptor(kind: str, vocabulary: str = "", weights: str = "") -> PlaceDescriptor:
-    """Registry by name: ``bow`` (vocabulary file; "" = the shipped models/orb_bow_k512.npz) or ``vladnet``
-    (weights file; "" = the shipped models/vladnet_v1.pt; torch is imported only then)."""
+    """Registry by name: ``bow`` (vocabulary file; "" = the shipped vslam/models/orb_bow_k512.npz) or ``vladnet``
+    (weights file; "" = the shipped vslam/models/vladnet_v1.pt; torch is imported only then)."""
     if kind == "bow":
         return BowDescriptor(Vocabulary.load(Path(vocabulary) if vocabulary else default_vocabulary_path()))
     if kind == "vladnet":

@@ -22,7 +22,7 @@ Describer = Callable[[list], np.ndarray]  # images -> (N,D) unit descriptors
 
 
 def bow_describer(n_features: int = 1000) -> Describer:
-    """The loop closer's BoW descriptor on the SLAM front end's ORB keypoints (models/orb_bow_k512.npz)."""
+    """The loop closer's BoW descriptor on the SLAM front end's ORB keypoints (vslam/models/orb_bow_k512.npz)."""
     from vslam.data.types import PinholeCamera
     from vslam.features import FeatureConfig, make_extractor
     from vslam.loop.descriptor import make_place_descriptor

@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class PlaceTrainConfig:
     out: str = "runs/train_place/vladnet"
-    weights: str = ""  # also copy the final weights here (e.g. models/vladnet_v1.pt)
+    weights: str = ""  # also copy the final weights here (e.g. vslam/models/vladnet_v1.pt)
     synthetic_seeds: tuple[int, ...] = (11, 12, 13, 14, 15, 16)
     synthetic_frames: int = 600
     synthetic_stride: int = 3

@@ -9,7 +9,7 @@ numpy for 1500 keypoints per keyframe, and the vocabulary is an 8-32 KB file.
 Training: k-means on the unpacked bits with the majority vote as the centre
 (k-majority), k-means++ seeding from a passed ``np.random.Generator`` so the
 file is reproducible. ``python -m vslam.loop.vocabulary`` trains the shipped
-``models/orb_bow_k512.npz`` from COCO images (generic photos, none from the
+``vslam/models/orb_bow_k512.npz`` from COCO images (generic photos, none from the
 sequences we evaluate on).
 """
 
@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from vslam.errors import ConfigError
+from vslam.resources import shipped_model
 
 log = logging.getLogger(__name__)
 
@@ -123,7 +124,7 @@ def train_vocabulary(descs_per_image: list[np.ndarray], k: int, rng: np.random.G
 
 
 def default_vocabulary_path() -> Path:
-    return Path(__file__).resolve().parents[2] / "models" / "orb_bow_k512.npz"
+    return shipped_model("orb_bow_k512.npz")
 
 
 def main(argv: list[str] | None = None) -> None:
