@@ -61,12 +61,10 @@ pose-only as a GTSAM graph (points held by priors), same data and pose          
 A GTSAM LM iteration costs ~15 ms for 3000 observations (linearise ~2 ms, eliminate ~10 ms: GTSAM's
 per-clique overhead over 1500 tiny point cliques); the Python-side build is ~5 us per factor.
 
-Why a window and not iSAM2 (``python -m tests.backend.bench_solvers --kf 30``, 2-core EPYC, 2026-12-01: a
-growing stereo map, 250 new points per keyframe seen 4-8 times, 0.7 px noise, tracked starts 5 mm / 0.3 deg
-off): windowed LM over 8 keyframes 5.8 mm / 0.048 deg keyframe RMSE at 320 ms per keyframe (max 490);
-iSAM2 over the whole history 4.5 mm / 0.049 deg at 1070 ms per keyframe and growing with the map (1240 ms
-over the last 5); one batch LM over everything at the end 5.4 mm. iSAM2's 1 mm costs 3.3x the time and is
-unbounded, so local mapping uses the window; loop closing adds the global optimisation (``vslam.loop``).
+Why a window and not iSAM2: on a growing stereo map, iSAM2 over the whole history was ~1 mm more accurate
+than windowed LM at 3.3x the time per keyframe, and its time grows with the map
+(``python -m tests.backend.bench_solvers --kf 30``; numbers in docs/backend.md). So local mapping uses the
+window; loop closing adds the global optimisation (``vslam.loop``).
 """
 
 from __future__ import annotations
@@ -136,15 +134,8 @@ class BackendConfig:
     # Local BA's solver: "gtsam" (the factor graph of ``factors``) or "numpy" (``vslam.backend.schur``: points
     # eliminated by a dense Schur complement over the window's free poses); the same cost and LM settings, the same
     # estimates to the LM tolerance per window. Windows with line landmarks or more than NUMPY_MAX_POSES keyframes
-    # (global BA) go to GTSAM either way. numpy: local BA 133 -> 86 ms per keyframe on TUM teddy, 60 -> 27
-    # ms/frame on KITTI 07 mono. Not the default: over the whole bench (2026-12-03) most rows kept their ATE to
-    # 0.1 mm, but the chaotic ones moved, some for the worse (TUM with walkers and the detector 0.0186 -> 0.0305 m,
-    # monocular VIO room 0.034 -> 0.063 m, KITTI mono lines 0.291 -> 0.295 m; better: TUM walkers with the
-    # geometric check alone 0.211 -> 0.187 m, dim stereo corridor 0.0079 -> 0.0075 m). Again on 18 rows
-    # (2026-12-04, `vslam bench --sweep slam.backend.solver=gtsam,numpy`): 12 rows the same ATE to 0.1 mm, faster
-    # almost everywhere (TUM 93 -> 78, loop room RGB-D 331 -> 248, corridor stereo 302 -> 242 ms/frame at 2 jobs);
-    # TUM walkers + detector 0.0195 -> 0.0314 m again, but that row is chaotic: with PnP RANSAC seeds 1 / 2 / 3
-    # GTSAM gives 0.0342 / 0.0321 / 0.0190 m and numpy 0.0327 / 0.0279 / 0.0281 m.
+    # (global BA) go to GTSAM either way. numpy is faster (local BA ~0.65x per keyframe on TUM teddy), but not the
+    # default: on the bench it moved the chaotic rows (TUM walkers + detector), some for the worse; docs/backend.md.
     solver: Literal["gtsam", "numpy"] = "gtsam"
     pose_rounds: int = 4  # pose-only: optimise / classify rounds (ORB-SLAM2: 4)
     pose_iterations: int = 10  # pose-only: LM iterations per round (ORB-SLAM2: 10)

@@ -5,8 +5,7 @@ Why: a Python ``CustomFactor`` per line costs ~160-350 us per call on this machi
 3000-observation window 3.5-5x slower than its points alone, and a 6-keyframe window with 25 lines x 6 views
 and 12 points 20-40x (``python -m tests.backend.bench_lines``, CPU time). Here every line of the window is
 handled in one vectorised numpy callback, and the lines are not GTSAM variables at all (like GTSAM's smart
-factors); the same 60-line window then costs 1.2x its points alone (2026-12-04: 59.8 -> 72.7 ms CPU; 1.3-1.7x before
-the back-substitution below).
+factors); the same 60-line window then costs ~1.2x its points alone (docs/lines.md).
 
 1. *Lines at the poses*: at the first evaluation each line's 4-DoF orthonormal form (``plucker``) gets
    ``_PRIME_ITERATIONS`` (2) Levenberg-Marquardt steps on its Huber (IRLS) end-point distances at the initial

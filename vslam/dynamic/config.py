@@ -64,15 +64,9 @@ class DynamicConfig:
     source: MaskSource = "gt_mask"
     classes: tuple[str, ...] = ("person", "bicycle", "car", "motorcycle", "bus", "truck", "chair")
     dilation_px: int = 4  # mask / box growth: keypoints on an object's outline have an ORB patch on it
-    # detector boxes below this score are ignored; for the shipped CPU-trained model (its scores run low) chosen
-    # on a validation composite (TUM teddy, walkers seed 1): ATE 0.0051 / 0.0050 / 0.0057 / 0.0064 m at
-    # 0.1 / 0.2 / 0.3 / 0.4 (box memory 0.27 s). Re-checked for round 5 (GPU) on the validation composites
-    # 1-6 (2026-12-04), mean ATE at 0.15 / 0.2 / 0.3: 0.0105 / 0.0048 / 0.0060 m -- single composites jump to
-    # 0.010-0.018 m either side (a walker's box lost or a false one kept for a few frames), so 0.2 stayed. The
-    # SE model shipped since 2026-12-04 19:30, on the twelve validation composites (seeds 1-6, 12-17), mean / median /
-    # worst ATE mm at 0.15 / 0.2 / 0.25: 6.6 / 5.1 / 13.6, 7.1 / 5.3 / 24.4, 7.5 / 5.1 / 25.2 (a walker it boxes
-    # weakly, seed 16, is masked at 0.15): 0.15. The threshold belongs to the weights: set it with them (KITTI's
-    # round 4 at 0.2, bench row kitti07-people-mono-detector)
+    # detector boxes below this score are ignored. The threshold belongs to the weights: set it with them (KITTI's
+    # round 4 at 0.2, bench row kitti07-people-mono-detector). 0.15 for the shipped SE model: best mean and worst
+    # ATE on the twelve TUM validation composites (docs/dynamic.md).
     score_threshold: float = 0.15
     # detector: the boxes of the frames of the last ``box_memory_s`` seconds are masked too (a person missed in
     # one frame was found in one before; boxes move little in a fraction of a second). Same validation
@@ -92,11 +86,8 @@ class DynamicConfig:
     # detector: a box the detector stops finding is followed for up to this many seconds by the median motion of
     # the keypoints matched inside it from the previous frame (MedianFlow-like; the detector's box replaces it
     # when one overlaps it again, IoU >= 0.3). 0 = off: box memory alone holds a missed box where it was.
-    # Off: on the twelve validation composites (SE at 0.15) the mean ATE went 6.6 -> 6.2 / 5.2 / 5.3 / 5.3 mm at
-    # 1 / 2 / 3 / 10 s (the two walkers it had lost, seeds 14 and 16, 13.6 / 13.0 -> 4.0 / 4.4 mm at 2 s), but on the
-    # twelve held-out composites (bench row tum-teddy-people-detector-seeds) 2 s gave 10.2 -> 13.3 mm: its two
-    # failures got worse (seed 21 38 -> 47 mm, seed 23 32 -> 62 mm), the others moved within +-1.5 mm. A longer
-    # box memory instead (validation, no following): 6.0 mm at 0.6 s, 6.2 at 1.2 s (2026-12-04).
+    # Off: it helped the validation composites but made the held-out composites' two failures worse; a longer
+    # box memory did not help either (docs/dynamic.md).
     box_track_s: float = 0.0
     box_track_min_matches: int = 6  # fewer matches inside a followed box: it stays where it was this frame
     weights: str = ""  # detector checkpoint (source=detector); "" = the shipped vslam/models/detector_se_gpu.pt

@@ -51,9 +51,7 @@ class FeatureConfig:
     # On the CPU, the network in int8 (``vslam.quantize``; ranges in <weights>.int8.json, made by `vslam quantize
     # keypoints`; without them, or on CUDA, the float network runs): convolutions ~3x faster (network 22 vs 71 ms
     # per 640x480 frame on 2 Xeon threads), keypoints and descriptors a little off the float ones (held-out pairs:
-    # matching score 0.742 vs 0.750, bench row keypoints-homography). SLAM ATE float -> int8 (bench rows,
-    # 2026-12-03): TUM teddy 0.0042 -> 0.0043 m, KITTI 07 mono 0.306 -> 0.319 m, 2-loop lighting room 0.040 ->
-    # 0.029 m, the learned pipeline on the TUM walkers composite 0.0188 -> 0.0175 m at 244.8 -> 202.6 ms/frame.
+    # matching score 0.742 vs 0.750, bench row keypoints-homography); SLAM ATE float vs int8: docs/features.md.
     int8: bool = True
 
     def __post_init__(self) -> None:

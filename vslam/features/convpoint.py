@@ -76,8 +76,8 @@ class _Core(nn.Module):
 
 
 #: Layers the int8 network keeps in float: the first convolution (+ BN, ReLU) sees the standardised image itself.
-#: Held-out homography pairs (64-pair prototype set, 2026-12-03), int8 vs float: with it float, illumination H acc@3
-#: 0.938 vs 0.969 (all int8: 0.898), viewpoint matching score 0.740 vs 0.749 (0.731), at the same speed.
+#: Kept in float, the int8 network stays closer to the float one on held-out homography pairs, at the same
+#: speed (docs/features.md).
 INT8_FLOAT_MODULES = ("encoder.0", "encoder.1", "encoder.2")
 INT8_COMMAND = "vslam quantize keypoints"
 

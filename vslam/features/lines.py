@@ -40,13 +40,9 @@ class LineConfig:
     match_angle_deg: float = 8.0  # oriented angle difference allowed in matching
     match_radius_px: float = 12.0  # end points of a candidate within this distance of the predicted line
     min_overlap: float = 0.3  # overlap along the line / shorter segment
-    # std of an end-point distance, pixels (pose-only tracking and local BA). Chosen on validation runs the
-    # bench rows do not use (2026-12-03; points only / 2 px / 1 px): RGB-D corridor seeds 10-13 mean ATE
-    # 0.0056 / 0.0051 / 0.0043 m, stereo corridor seeds 10-13 0.0089 / 0.0083 / 0.0075 m, TUM teddy at ORB
-    # budgets 1000 / 2000 0.0043, 0.0074 / 0.0042, 0.0062 / 0.0040, 0.0055 m, KITTI 07 mono at 1600 / 2400
-    # 0.2800, 0.3225 / 0.2819, 0.3009 / 0.2694, 0.3087 m. What 1 px buys is the pose-only weight: BA at 1 px
-    # with tracking at 2 px (weight 0.25) gave the corridor seeds 0-3 0.0055 m, BA at 2 px with tracking at
-    # 1 px (weight 4) 0.0043 m. (On 2026-12-01, before later tracking changes, 1 px measured worse on TUM.)
+    # std of an end-point distance, pixels (pose-only tracking and local BA). 1 px rather than 2, chosen on
+    # validation runs the bench rows do not use (corridors, TUM teddy and KITTI 07 at other ORB budgets); what
+    # 1 px buys is the pose-only weight (docs/lines.md).
     pixel_sigma: float = 1.0
     min_depth_samples: int = 5  # RGB-D/stereo line creation: valid depth samples needed along the segment
     depth_fit_m: float = 0.03  # ... max deviation of those samples from the 3-D line (+ 1 % of depth)
@@ -58,10 +54,7 @@ class LineConfig:
     surface_only: bool = False
     # the same without losing creases: each side's depth (2 and 4 px off the segment) extrapolated linearly to
     # the segment; a crease's two surfaces meet there, an occluding contour's do not (sides without depth: not
-    # judged). Chosen on TUM teddy with lines at ORB budgets 1000 / 2000 (points only 0.0043 / 0.0074 m): ATE
-    # 0.0042 / 0.0064 -> 0.0042 / 0.0062 m; then on the bench budgets 1200 / 1500 / 1800 (points only 0.0043 /
-    # 0.0044 / 0.0054): 0.0043 / 0.0042 / 0.0072 -> 0.0045 / 0.0039 / 0.0056 m; corridor seeds 0-3 unchanged
-    # within 0.1 mm (2026-12-03)
+    # judged). Chosen on TUM teddy with lines at several ORB budgets, the corridor unchanged (docs/lines.md).
     reject_contours: bool = True
     # most-observed map lines put into one local BA; the line share of BA time scales with it. Synthetic
     # corridor, ATE 120 / 300 frames: 150 -> 3.41 mm / 7.1 mm, 60 -> 3.29 / 5.1 mm, 40 -> - / 7.4 mm (points
@@ -77,17 +70,14 @@ class LineConfig:
     # extrapolated to it, fitted by a 3-D line), entering pose-only tracking and local BA as a virtual disparity
     # fx b / z (b the RGB-D virtual baseline, as for the points) of this std in pixels: two more rows per
     # observation, so a line seen by two keyframes already constrains them; 0 = lines are image-only. Chosen
-    # on validation corridors the bench rows do not use (2026-12-04, RGB-D corridor seeds 4-7 / 10-13, mean ATE
-    # m): points only 0.0059 / 0.0056, lines without depths 0.0049 / 0.0044, with depths at 0.3 px 0.0040 /
-    # 0.0041, 0.1 px 0.0042 / 0.0039, 0.05 px 0.0038 / 0.0035, 0.03 px 0.0038 / 0.0038. Synthetic depth is
-    # exact; Kinect depth bleeds at edges, and configs/tum_*.yaml use 0.3 (see there).
+    # on validation corridors the bench rows do not use (docs/lines.md). Synthetic depth is exact; Kinect depth
+    # bleeds at edges, and the TUM presets use 0.3 (see there).
     depth_sigma_px: float = 0.05
     # Stereo: the same end-point depth rows, measured by intersecting the planes of the segment and its match
     # in the right image (descriptor + epipolar overlap, as two-view creation, crossing the epipolar lines at
     # >= ``stereo_min_epi_angle_deg``: along them the planes coincide); std of that disparity in pixels, 0 =
-    # off. Chosen on validation stereo corridors (2026-12-04, seeds 4-7 / 10-13, mean ATE m): points only
-    # 0.0099 / 0.0091, lines without depths 0.0121 / 0.0075, with depths at 1 px 0.0109 / -, 0.5 px 0.0092 / -,
-    # 0.2 px 0.0087 / 0.0072. Costs a second LSD pass (the right image) on the front-end thread.
+    # off. Chosen on validation stereo corridors the bench rows do not use (docs/lines.md). Costs a second LSD
+    # pass (the right image) on the front-end thread.
     stereo_depth_sigma_px: float = 0.2
     stereo_min_epi_angle_deg: float = 20.0
     # RGB-D line creation reads each side's depth extrapolated to the segment, as the depth rows do, instead of
@@ -97,10 +87,8 @@ class LineConfig:
     # where new line landmarks come from: "depth" (RGB-D: the depth map along the segment; stereo: the end-point
     # depths the rig measured, ``stereo_depth_sigma_px``), "two_view" (a new keyframe's segments matched to a
     # covisible keyframe's by epipolar overlap, planes intersected), "both" (depth first, two-view for what it
-    # left); "auto": depth for RGB-D, both for stereo, two-view for mono. RGB-D corridor with "both": 0.0040 m,
-    # as with "depth". Stereo, validation corridors (2026-12-04, seeds 4-7 / 10-13, mean ATE m; points only
-    # 0.0097 / 0.0091): two_view 0.0101 / 0.0074, depth 0.0064 / 0.0048, both 0.0057 / 0.0045 (the rig misses
-    # lines along its epipolar lines and far ones; two views over the motion take those)
+    # left); "auto": depth for RGB-D, both for stereo, two-view for mono. For stereo "both": the rig misses
+    # lines along its epipolar lines and far ones, two views over the motion take those (docs/lines.md).
     create: Literal["auto", "depth", "two_view", "both"] = "auto"
     rig_min_disparity_px: float = 2.0  # stereo "depth" creation: both end points at least this disparity
     tri_min_epi_angle_deg: float = 5.0  # two-view: a segment must cross the epipolar lines at least this steeply

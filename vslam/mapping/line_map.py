@@ -315,9 +315,8 @@ class LineSlam:
             else:
                 ix = np.clip(np.round(p).astype(np.int64), 0, [w - 1, h - 1])
                 zs.append(depth_map[ix[..., 1], ix[..., 0]].astype(np.float64))
-        # the nearer side; NaN only where both are missing. Their mean on one surface halves the creation error
-        # (corridor lines 1.8 -> 0.9 cm off their wall) but measured worse: corridor ATE over seeds 0-3
-        # 0.0044 / 0.0047 / 0.0067 / 0.0060 m against 0.0040 / 0.0045 / 0.0059 / 0.0061 m (2026-12-02)
+        # the nearer side; NaN only where both are missing. Their mean on one surface halves the creation error but
+        # measured worse on the corridor seeds (docs/lines.md)
         if extrapolate:  # each side's depth extrapolated to the segment (2 z(2 px) - z(4 px)), both averaged
             with np.errstate(invalid="ignore"):
                 ex = [np.where((a > 0) & (b > 0), 2 * a - b, np.nan) for a, b in ((zs[0], zs[2]), (zs[1], zs[3]))]

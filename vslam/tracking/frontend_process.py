@@ -5,7 +5,7 @@ Why not only the prefetch thread (``SlamConfig.frontend_thread``): on TUM teddy 
 spends ~11 ms on a frame and ~80 ms on a keyframe (local BA), the front end ~20 ms on every frame (PNG decode
 10 + ORB 8). Balanced over a keyframe's ~7 frames -- if the front end could work ahead through each BA. A
 thread cannot: GTSAM's optimiser holds the GIL (~30 ms per LM round), and its queue was 3 frames. Each frame
-after a BA then waited ~10 ms for the front end (stats.csv ms_decode, 2026-12-04). A process has its own GIL.
+after a BA then waited ~10 ms for the front end (stats.csv ms_decode; docs/speed.md). A process has its own GIL.
 
 How the frames travel: a TUM frame pickles to ~2.2 MB (colour + float depth), which through a pipe needs the
 reader's GIL dozens of times per frame -- a reader thread beside GTSAM starved, and the child blocked on the

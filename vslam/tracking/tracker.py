@@ -40,13 +40,9 @@ class TrackingConfig:
     radius_refine_px: float = 4.0  # second round, from the refined pose
     # First round (the motion-model PnP) against the previous frame's tracked points only, as ORB-SLAM's
     # TrackWithMotionModel (the whole local map when they give fewer than min_matches, or after a loss), instead
-    # of the whole local map. On, it is faster (TUM teddy pose stage 23.4 -> 18.6 ms/frame) and as good or better on
-    # static scenes (all SLAM bench rows, 2026-12-02: KITTI 07 mono 0.292 -> 0.269 m, stereo street 0.032 ->
-    # 0.025 m, corridor 0.0051 -> 0.0047 m; worse: RGB-D street 0.017 -> 0.020 m, 2-loop lighting RGB-D 0.029 ->
-    # 0.037 m), but points on a mover the filter missed were inliers of the previous frame, and from them alone
-    # the PnP follows the mover: synthetic room with unfiltered movers 0.0105 -> 0.074 m, TUM teddy with walkers
-    # and the detector's masks 0.0112 -> 0.0214 m (the retrained detector: 0.0093 -> 0.0457 m); the whole local
-    # map outvotes them. Hence off by default.
+    # of the whole local map. On, it is faster and as good or better on most static scenes, but points on a mover
+    # the filter missed were inliers of the previous frame, and from them alone the PnP follows the mover; the
+    # whole local map outvotes them. Hence off by default (docs/tracking.md).
     first_round_last_frame: bool = False
     # Motion-model round: when its PnP pose moves the local map's projections (median) farther than the search
     # radius from the prediction's, the prediction failed: the reference keyframe's descriptor matching gives the
@@ -164,11 +160,9 @@ class Tracker:
         if len(uv) < max(6, self.cfg.min_inliers):
             return None, np.zeros(len(uv), bool)
         # LO-RANSAC alone, no Ceres refinement after it (~4 of its ~6 ms per frame on TUM teddy): every caller
-        # refines the pose next with the numpy pose-only optimiser (``refine``, ``track_projection``). 12 bench rows
-        # with the Ceres refinement / with no refinement at all before the second round (2026-12-04), ATE m: TUM
-        # 0.0044 / 0.0048, street RGB-D 0.0170 / 0.0204, street stereo 0.0321 / 0.0280, KITTI 07 mono 0.292 / 0.279,
-        # corridor stereo 0.0114 / 0.0078, corridor RGB-D 0.0051 / 0.0048, static stereo room 0.0120 / 0.0107, five
-        # rows within 0.1 mm; but the stereo loop room 0.0201 / 0.0273, hence the round in ``track_projection``.
+        # refines the pose next with the numpy pose-only optimiser (``refine``, ``track_projection``). With no
+        # refinement at all before the second round most rows were as good or better but the stereo loop room got
+        # worse, hence the round in ``track_projection`` (docs/tracking.md).
         res = pycolmap.estimate_absolute_pose(uv.astype(np.float64), X.astype(np.float64), self.pycam, self.ao)
         if res is None or res["num_inliers"] < self.cfg.min_inliers:
             return None, np.zeros(len(uv), bool)

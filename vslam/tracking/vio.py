@@ -32,19 +32,11 @@ turns the inertial side off the same way. When good data is back, the next keyfr
 (velocity from the last two tracked frames, the last bias, loose priors); gravity and the map frame stay those
 of the initialisation. ``imu_state`` says "used" or "off" per frame (``FrameEstimate.imu``).
 
-Measured (``vslam bench``, synthetic room 300 frames 320x240, realistic IMU noise, one run each), 2026-11-23:
-stereo-inertial ATE 0.033 m vs stereo-only 0.080 m; RGB-D-inertial 0.026 m vs 0.100 m. 2026-12-01, after the
-vision side improved (RGB-D disparity noise model, sub-pixel stereo, stereo close-point keyframe rule):
-stereo-inertial 0.032 m vs stereo-only 0.031 m -- the IMU no longer adds accuracy there (with the old stereo
-keyframe rule: 0.027 vs 0.114 m), so the inertial factors' weighting is the next thing to look at --;
-RGB-D-inertial 0.010 vs 0.024 m; with frames 150-179 black the VIO run keeps ATE 0.032 m while
-constant-velocity prediction drifts (0.065 m). Mono-inertial (2026-12-01): the final trajectory (frames through
-their keyframes after the rescales, ``FrameLog``) had Sim3 scale 1.061; the alignments solved on keyframes 0.1 s
-apart, whose position noise shrinks the scale (``vi_align(min_dt_s=)``), and a 1.1 deg two-view start read a
-~30 % rotation error as gyro bias. Alignment keyframes >= 0.3 s apart, a 2 deg initial parallax and a 20-keyframe
-IMU chain (configs/synthetic_vio_mono.yaml): scale 0.995 / 1.009 / 1.003 / 0.993 over seeds 0-3. The price is
-local BA time: ~1.9 s vs ~0.6 s per keyframe (the IMU chain adds keyframes to the window, and the marginal
-covariance of the next oldest state is computed).
+Why the mono-inertial settings (alignment keyframes >= 0.3 s apart, a 2 deg initial parallax and a
+20-keyframe IMU chain, preset synthetic_vio_mono): alignments solved on keyframes 0.1 s apart let their
+position noise shrink the scale (``vi_align(min_dt_s=)``), and a small two-view start read its rotation
+error as gyro bias. The price is local BA time (~3x per keyframe: the IMU chain adds keyframes to the window).
+Measurements: docs/inertial.md.
 """
 
 from __future__ import annotations
