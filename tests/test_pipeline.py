@@ -26,7 +26,7 @@ def test_rgbd_run_writes_everything_and_is_accurate(tmp_path):
     np.testing.assert_allclose(back.poses, res.trajectory.poses, atol=1e-6)
     assert len(read_trajectory(res.paths["trajectory_kitti"])) == 40
     # baseline RGB-D odometry on the synthetic room: measured 0.0063 m over 40 frames (0.57 m path)
-    assert res.eval.ate.translation.rmse < 0.015
+    assert res.eval.ate.translation.rmse < 0.0095  # 1.5x the measured value: a doubled error fails
     # the resolved config beside the outputs reloads to the same config
     assert PipelineConfig.load(res.paths["config"]) == _cfg(tmp_path)
 
@@ -34,7 +34,7 @@ def test_rgbd_run_writes_everything_and_is_accurate(tmp_path):
 def test_stereo_run(tmp_path):
     res = Pipeline(_cfg(tmp_path, sensor="stereo")).run()
     assert res.tracked.all()
-    assert res.eval.ate.translation.rmse < 0.025  # measured 0.011 m
+    assert res.eval.ate.translation.rmse < 0.0165  # measured 0.011 m (bound 1.5x)
 
 
 def test_same_input_same_trajectory(tmp_path):
@@ -50,9 +50,9 @@ def test_survives_a_10_frame_blackout(tmp_path):
     assert not res.tracked[20:30].any()  # black frames are marked as predicted, not measured
     assert res.tracked[:20].all() and res.tracked[30:].all()  # and tracking resumes right after
     # measured 0.046 m (the 10 predicted poses dominate); losing the track instead gives metres
-    assert res.eval.ate.translation.rmse < 0.08
+    assert res.eval.ate.translation.rmse < 0.07  # 1.5x
     # after the blackout the pose is re-measured against the last good frame (measured 0.036 m)
-    assert res.eval.arrays.ate_t[30:].max() < 0.06
+    assert res.eval.arrays.ate_t[30:].max() < 0.054  # 1.5x
 
 
 class _Crashing(SyntheticSequence):

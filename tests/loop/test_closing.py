@@ -56,4 +56,4 @@ def test_loop_is_closed_end_to_end(tmp_path):
     res = Pipeline(cfg).run()
     loops = json.loads((tmp_path / "loops.json").read_text())
     assert loops["corrected"] >= 1 and res.tracked.all()
-    assert res.eval.ate.translation.rmse < 0.015  # measured 0.0092 m (trajectory_final)
+    assert res.eval.ate.translation.rmse < 0.014  # measured 0.0092 m (bound 1.5x) (trajectory_final)

@@ -131,7 +131,7 @@ def test_rigid_correction_leaves_the_scale_drift() -> None:
     lc2 = LoopCloser(m2, CAM, lc.verifier.stereo_cam, "mono", cfg, BackendConfig())
     q2 = m2.keyframes[N_KF - 1]
     lc2.correct_sim3(q2, match, lc2.loop_scale(q2, match))
-    assert _ate([m2.keyframes[k].T_world_cam for k in range(N_KF)], true) < 0.6 * rigid  # measured 0.031 vs 0.532 m
+    assert _ate([m2.keyframes[k].T_world_cam for k in range(N_KF)], true) < 0.09 * rigid  # measured 0.031 vs 0.532 m (bound 1.5x)
 
 
 def test_global_ba_after_a_monocular_loop_keeps_the_correction() -> None:

@@ -148,7 +148,7 @@ def test_a_gap_starts_a_new_map_at_once_and_maps_are_scored_apart(tmp_path):
     assert [int(r["map_id"]) for r in rows] == [0] * 40 + [1] * 30
     assert sorted(res.map_evals) == [0, 1]
     for e in res.map_evals.values():  # each map on its own is as good as an unbroken run (~3 mm)
-        assert e.ate.translation.rmse < 0.006
+        assert e.ate.translation.rmse < 0.0045  # 1.5x
     assert (tmp_path / "report" / "maps.json").exists()
     assert len(read_trajectory(tmp_path / "trajectory_final.tum.txt")) == 70
     # the map file holds both maps, each whole, and a run loading it has the old one to merge into
@@ -177,7 +177,7 @@ def test_a_new_map_that_meets_the_old_one_is_merged(tmp_path):
     assert by_index[216]["status"] == "new_map" and by_index[216]["map_id"] == "1"
     assert by_index[269]["map_id"] == "0"  # after the merge the frames are in map 0 again
     assert set(res.map_ids.tolist()) == {0} and not res.map_evals
-    assert res.eval.ate.translation.rmse < 0.015  # one frame for all 94 poses (measured 0.0091 m)
+    assert res.eval.ate.translation.rmse < 0.0137  # one frame for all 94 poses (measured 0.0091 m; bound 1.5x)
     final = read_trajectory(tmp_path / "trajectory_final.tum.txt")
     assert len(final) == 94
 

@@ -30,11 +30,11 @@ def test_euroc_static_window_stereo(euroc_v101, tmp_path):
     # the camera barely moves (1.7 cm over 95 frames): the estimate must stay within a few mm of it
     drift = np.linalg.norm(res.trajectory.positions[-1] - res.trajectory.positions[0])
     assert drift < 0.02
-    assert res.eval.ate.translation.rmse < 0.008  # measured 0.0031 m
+    assert res.eval.ate.translation.rmse < 0.0047  # bound 1.5x; measured 0.0031 m
 
 
 def test_kitti_mono_runs(kitti_root, tmp_path):
     res = _run(open_sequence(kitti_root / "sequences" / "07", sensor="mono"), "mono", tmp_path, 40, align="sim3")
     assert res.tracked[1:].mean() > 0.9
     assert res.eval.alignment.method == "sim3"
-    assert res.eval.ate.translation.rmse < 1.0  # measured 0.46 m over 32 m (unit-step mono baseline)
+    assert res.eval.ate.translation.rmse < 0.69  # bound 1.5x; measured 0.46 m over 32 m (unit-step mono baseline)

@@ -130,7 +130,7 @@ def test_long_stretch_moves_the_reference_and_features_resume():
     status = [e.status_name for e in ests]
     assert "predicted" not in status and "lost" not in status, status
     assert all(s == "tracked" for s in status[106:]), status[100:]
-    assert ate <= 0.01, ate  # measured 0.23 % of 6.1 m
+    assert ate <= 0.0035, ate  # measured 0.23 % of 6.1 m (bound 1.5x)
     # keyframes made from dense frames are tied by PoseLinks to the keyframe the step last referenced (through
     # the frames it re-referenced on, compounded), the last one ending after the stretch; the ground truth's
     # relative pose lies inside each link's covariance

@@ -83,7 +83,7 @@ def test_tracking_resumes_after_each_fault_and_stays_accurate(run):
     resumed = [i for i in range(N) if i not in BLUR and i not in BLACK and i != DUP]
     assert set(_col(rows, "tracked", resumed)) == {"1"}  # measured again right after each fault
     ate = res.eval.ate.translation.rmse
-    assert ate < 0.06, ate  # measured 0.027 m over 0.8 m; the predicted poses dominate it
+    assert ate < 0.04, ate  # bound 1.5x; measured 0.027 m over 0.8 m; the predicted poses dominate it
     after = res.trajectory.timestamps >= float(rows[BLACK.stop]["timestamp"])
     assert res.eval.arrays.ate_t[after].max() < 0.05  # re-measured after the blackout
 

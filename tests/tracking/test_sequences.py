@@ -18,7 +18,7 @@ def test_street_40_frames(tmp_path):
     res = _run(tmp_path, 40, scene="street")
     assert res.tracked.all()
     assert 6.0 < res.eval.gt_length_m < 7.0  # 17 cm per frame down the street
-    assert res.eval.ate.translation.rmse < 0.045  # measured 0.027 m (0.42 % of 6.5 m; 0.060 m before the disparity sigma)
+    assert res.eval.ate.translation.rmse < 0.04  # bound 1.5x; measured 0.027 m (0.42 % of 6.5 m; 0.060 m before the disparity sigma)
 
 
 def test_loop_60_frames(tmp_path):

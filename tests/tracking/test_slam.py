@@ -38,7 +38,7 @@ def test_rgbd_pipeline_accuracy_keyframes_and_map(tmp_path):
     res = Pipeline(cfg).run()
     assert res.tracked.all()
     # measured 0.0056 m over 0.89 m of path (baseline odometry: 0.012 m)
-    assert res.eval.ate.translation.rmse < 0.01
+    assert res.eval.ate.translation.rmse < 0.0085  # 1.5x the measured value
     import open3d as o3d
 
     pcd = o3d.io.read_point_cloud(str(res.paths["map"]))
@@ -51,7 +51,7 @@ def test_stereo_accuracy():
     seq = _seq("stereo")
     _, traj, tracked = _run(seq, "stereo")
     assert tracked.all()
-    assert _ate(traj, seq).ate.translation.rmse < 0.03  # measured 0.014 m
+    assert _ate(traj, seq).ate.translation.rmse < 0.021  # measured 0.014 m (bound 1.5x)
 
 
 def test_survives_a_10_frame_blackout():
@@ -60,7 +60,7 @@ def test_survives_a_10_frame_blackout():
     assert not tracked[20:30].any()  # black frames are predicted, not measured
     assert tracked[:20].all() and tracked[30:].all()  # relocalised right after
     res = _ate(traj, seq)
-    assert res.ate.translation.rmse < 0.06  # measured 0.03 m, dominated by the predicted frames
+    assert res.ate.translation.rmse < 0.045  # measured 0.03 m (bound 1.5x), dominated by the predicted frames
     assert res.arrays.ate_t[30:].max() < 0.05
 
 
@@ -93,7 +93,7 @@ def test_monocular_after_initialisation():
     assert tracked[first:].all()
     sub = traj.subset(np.arange(first, len(traj)))
     rmse = _ate(sub, seq, mono=True).ate.translation.rmse
-    assert rmse < 0.08  # measured 0.036 m (Sim3) over 0.75 m, initialised at frame 7
+    assert rmse < 0.054  # bound 1.5x; measured 0.036 m (Sim3) over 0.75 m, initialised at frame 7
 
 
 def _mapping(lag: int) -> SlamConfig:

@@ -19,7 +19,7 @@ def _run(seq, sensor, tmp_path, n, align="se3", slam=None):
 def test_tum_teddy_rgbd_60_frames(tum_teddy, tmp_path):
     res = _run(open_sequence(tum_teddy), "rgbd", tmp_path, 60)
     assert res.tracked.all()
-    assert res.eval.ate.translation.rmse < 0.007  # measured 0.0034 m (baseline odometry 0.0043 m)
+    assert res.eval.ate.translation.rmse < 0.0051  # bound 1.5x; measured 0.0034 m (baseline odometry 0.0043 m)
     assert res.paths["map"].is_file() and res.paths["keyframes"].is_file()
 
 
@@ -28,7 +28,7 @@ def test_euroc_static_window_stereo(euroc_v101, tmp_path):
     assert res.tracked.all()
     drift = np.linalg.norm(res.trajectory.positions[-1] - res.trajectory.positions[0])
     assert drift < 0.005  # measured 0.0004 m
-    assert res.eval.ate.translation.rmse < 0.003  # measured 0.0007 m
+    assert res.eval.ate.translation.rmse < 0.00105  # bound 1.5x; measured 0.0007 m
 
 
 def test_kitti_mono_60_frames(kitti_root, tmp_path):
