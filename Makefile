@@ -15,6 +15,7 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/python -m pytest -q
+	$(BIN)/vslam bench --check
 
 # the wheel as `pip install .` builds it, installed non-editable in a fresh venv, run from outside the checkout
 wheel-check: $(STAMP)

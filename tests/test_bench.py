@@ -140,7 +140,9 @@ def test_ab_rows_over_composites_run_one_grid_point_per_walker_seed(tmp_path, mo
     assert [j.overrides["dataset"]["path"] for j in seen] == [str(tmp_path / f"walkers-{s}") for s in (0, 0, 7, 7)]
     assert [j.overrides["slam"]["dynamic"]["source"] for j in seen] == ["gt_mask", "detector"] * 2
     assert {j.overrides["dataset"]["kind"] for j in seen} == {"tum"}
-    r = load_sidecar(tmp_path / "B.json")["people-seeds"]["result"]
+    entry = load_sidecar(tmp_path / "B.json")["people-seeds"]
+    assert "commit" in entry  # None here: the suite's folder is not a git checkout
+    r = entry["result"]
     assert r["points"] == ["make_dynamic.seed=0", "make_dynamic.seed=7"]
     assert r["ate_a"] == [0.001, 0.003] and r["ate_b"] == [0.002, 0.004]
     assert r["mean_ratio"] == pytest.approx(0.003 / 0.002)
@@ -187,3 +189,203 @@ def test_line_ba_row_solves_each_window_twice_and_keeps_the_run_with_lines(tmp_p
         "dataset": {"synthetic": {"scene": "corridor", "n_movers": 0, "n_frames": 45}},
         "slam": {"lines": {"enabled": True}}, "output": {"dir": str(tmp_path / "plain")}})).run()
     assert r["ate_rmse"] == plain.eval.ate.translation.rmse
+
+
+# --- targets as checks (issue 42): parsed from the suite, evaluated on the sidecar as written ---------------------
+
+CHECK_SUITE = """title: t
+rows:
+  - name: ref
+    check:
+      - {metric: ate_pct_path, op: "<=", value: 0.5}
+      - {metric: untracked, op: "==", value: 0}
+    headline: "the reference run"
+  - name: variant
+    target: "ATE ≤ 1.1x ref; ms/frame vs ref"
+    check:
+      - {metric: ate_rmse, op: "<=", ratio: 1.1, of: ref}
+      - {metric: ms_per_frame, op: "<=", value: 20, open: "issue 41"}
+  - name: ab
+    kind: ab
+    check:
+      - {metric: ate_b_mean, op: "<=", ratio: 1.2, of: ref, of_metric: ate_rmse}
+      - {metric: mean_ratio, op: "<", value: 1}
+  - name: words
+    target: "looks right"
+    headline: "text only"
+  - name: later
+    check:
+      - {metric: ate_rmse, op: "<=", value: 1}
+"""
+
+
+def _run(ate: float, frames: int = 100, tracked: int = 100, **kw):
+    return {"frames": frames, "tracked": tracked, "ate_rmse": ate, "path_m": 2.0, "ms_per_frame": 30.0, "fps": 33.3,
+            "peak_rss_mb": 400.0, **kw}
+
+
+def _sidecar(tmp_path, rows: dict, extra: dict | None = None) -> Path:
+    side = tmp_path / "B.json"
+    entries = {n: {"result": r, "measured": "2026-12-05 01:00 UTC", "repeat": 1, "machine": "m", **(extra or {}).get(n, {})}
+               for n, r in rows.items()}
+    side.write_text(json.dumps({"version": 1, "suite": "s", "rows": entries}))
+    return side
+
+
+def _check_suite(tmp_path, text: str = CHECK_SUITE) -> Path:
+    suite = tmp_path / "suite.yaml"
+    suite.write_text(text)
+    return suite
+
+
+def test_checks_are_parsed_from_the_suite_and_bad_ones_named(tmp_path):
+    from vslam.bench_checks import Check, check_text, target_text
+
+    rows = {r.name: r for r in load_suite(_check_suite(tmp_path)).rows}
+    assert rows["ref"].check == (Check("ate_pct_path", "<=", value=0.5), Check("untracked", "==", value=0.0))
+    assert rows["variant"].check[0] == Check("ate_rmse", "<=", ratio=1.1, of="ref")
+    assert rows["variant"].check[1].open == "issue 41" and rows["ref"].headline == "the reference run"
+    # the target a reader sees: the row's words, else its checks written out
+    assert target_text(rows["variant"]) == "ATE ≤ 1.1x ref; ms/frame vs ref"
+    assert target_text(rows["ref"]) == "ATE ≤ 0.5 % of path; frames not tracked = 0"
+    assert check_text(rows["ab"].check[0], "ab") == "mean ATE B ≤ 1.2x ref ATE"
+    assert check_text(Check("ate_rmse", "<=", of="ref", plus=0.05)) == "ATE ≤ ref + 0.05 m"
+    for bad, match in [("{metric: ate_rmse, op: '<='}", "either value or a reference"),
+                       ("{metric: ate_rmse, op: '<=', value: 1, of: ref}", "either value or a reference"),
+                       ("{metric: ate_rmse, op: '<=', ratio: 2}", "needs `of`"),
+                       ("{metric: ate_rmse, op: '~', value: 1}", "op"),
+                       ("{metric: ate_rmse, op: '<=', value: 1, bound: 2}", "unknown key 'rows\\[0\\].check\\[0\\].bound'")]:
+        with pytest.raises(ConfigError, match=match):
+            load_suite(_check_suite(tmp_path, f"rows:\n  - name: x\n    check:\n      - {bad}\n"))
+
+
+def test_checks_evaluate_values_ratios_to_other_rows_and_paths():
+    from vslam.bench_checks import Check, evaluate_check, metric_value, verdict
+
+    entries = {n: {"result": r} for n, r in {
+        "ref": _run(0.010),
+        "ok": _run(0.0109, align="sim3 (s=1.0150)"),
+        "worse": _run(0.0111, frames=100, tracked=97, lost=3, maps={"0": {"frames": 60, "ate_rmse": 0.02},
+                                                                     "1": {"frames": 37, "ate_rmse": 0.05}}),
+        "ab": {"ate_a": [0.004, 0.006, None], "ate_b": [0.005, 0.007, 0.1], "mean_ratio": 1.2},
+        "nested": {"sets": {"TUM fr3/teddy, frames ≥ 100 (≤ 0.3 m)": {"bow": {"r@1": 0.13}, "vladnet": {"r@1": 0.18}}},
+                   "models": {"detector_se_gpu.pt": {"ms": 4.5}}, "windows": [{"nees": 5.0}, {"nees": 7.5}]},
+        "failed": {"error": "RuntimeError: boom"},
+        "gpu": {"skipped": "no CUDA device here"},
+    }.items()}
+    ratio = Check("ate_rmse", "<=", ratio=1.1, of="ref")
+    ok, worse = evaluate_check("ok", ratio, entries), evaluate_check("worse", ratio, entries)
+    assert ok.status == "pass" and ok.bound == pytest.approx(0.011) and ok.measured == 0.0109
+    assert worse.status == "miss" and "worse: ate_rmse 0.0111 m vs target ≤ 0.0110 m (ATE ≤ 1.1x ref)" == worse.line
+    # derived metrics
+    assert metric_value(entries["ref"]["result"], "ate_pct_path") == pytest.approx(0.5)
+    assert metric_value(entries["worse"]["result"], "untracked") == 3
+    assert metric_value(entries["worse"]["result"], "max_map_ate") == 0.05
+    assert metric_value(entries["worse"]["result"], "maps_at_end") == 2 and metric_value(entries["ok"]["result"], "maps_at_end") == 1
+    assert metric_value(entries["ok"]["result"], "sim3_scale") == 1.015
+    assert metric_value(entries["ab"]["result"], "ate_b_mean") == pytest.approx(0.006)  # points where both ran
+    # paths: a unique key prefix, a key holding dots, a list index
+    assert metric_value(entries["nested"]["result"], "sets.TUM.vladnet.r@1") == 0.18
+    assert metric_value(entries["nested"]["result"], "models.detector_se_gpu.pt.ms") == 4.5
+    assert metric_value(entries["nested"]["result"], "windows.1.nees") == 7.5
+    same_row = Check("sets.TUM.vladnet.r@1", ">=", of_metric="sets.TUM.bow.r@1")
+    assert evaluate_check("nested", same_row, entries).status == "pass"
+    grown = evaluate_check("worse", Check("ate_rmse", "<=", of="ref", plus=0.0005), entries)  # an allowed growth
+    assert grown.bound == pytest.approx(0.0105) and grown.status == "miss"
+    assert evaluate_check("worse", Check("ate_rmse", "<=", of="ref", plus=0.002), entries).status == "pass"
+    # open: a known miss is not a failure; one that passes again says so
+    assert evaluate_check("worse", Check("ate_rmse", "<=", ratio=1.1, of="ref", open="issue 41"), entries).status == "known"
+    assert evaluate_check("ok", Check("ate_rmse", "<=", ratio=1.1, of="ref", open="issue 41"), entries).status == "fixed"
+    # not measured (row or reference absent, job skipped) is not a miss; a failed job and an unknown number are
+    assert evaluate_check("absent", ratio, entries).status == "unmeasured"
+    assert evaluate_check("ok", Check("ate_rmse", "<=", of="absent"), entries).status == "unmeasured"
+    assert evaluate_check("gpu", Check("ms.detector", "<=", value=5), entries).why == "no CUDA device here"
+    failed = evaluate_check("failed", Check("ate_rmse", "<=", value=1), entries)
+    assert failed.status == "miss" and "failed: RuntimeError: boom" in failed.line
+    typo = evaluate_check("ok", Check("ate_rsme", "<=", value=1), entries)
+    assert typo.status == "miss" and "ate_rsme" in typo.why
+    assert evaluate_check("nested", Check("sets.synthetic.bow.r@1", ">=", value=0), entries).status == "miss"
+    # the row's mark
+    outs = [evaluate_check("ok", ratio, entries)]
+    assert verdict(outs) == "✓" and verdict([]) == "–" and verdict([worse, *outs]) == "✗"
+    known = evaluate_check("worse", Check("ate_rmse", "<=", ratio=1.1, of="ref", open="issue 41"), entries)
+    assert verdict([known, *outs]) == "✗ (open)" and verdict([known], why=True) == "✗ (open: issue 41)"
+
+
+def test_bench_check_exits_1_on_a_miss_and_0_when_every_miss_is_open(tmp_path, capsys):
+    from vslam.cli import main
+
+    suite = _check_suite(tmp_path)
+    rows = {"ref": _run(0.010), "variant": _run(0.0105), "words": _run(0.5),
+            "ab": {"ate_a": [0.012, 0.012], "ate_b": [0.011, 0.011], "mean_ratio": 0.92}}
+    _sidecar(tmp_path, rows)
+    args = ["bench", "--check", "--suite", str(suite), "--output", str(tmp_path / "B.md")]
+    assert main(args) == 0  # variant's 30 ms/frame misses, but its check is open
+    out = capsys.readouterr().out
+    assert "Known misses (open):\n  variant: ms_per_frame 30.0 vs target ≤ 20.0 (ms/frame ≤ 20); open: issue 41" in out
+    assert "Not measured:\n  later: ate_rmse (not in BENCHMARKS.json)" in out and "Targets missed" not in out
+    assert "7 checks on 4 rows: 5 pass, 0 missed, 1 known misses, 1 not measured" in out
+    rows["variant"] = _run(0.0115)  # 1.15x ref: a regression
+    rows["ab"]["mean_ratio"] = 1.0
+    _sidecar(tmp_path, rows)
+    assert main(args) == 1
+    out = capsys.readouterr().out.splitlines()
+    assert out[:3] == ["Targets missed:", "  variant: ate_rmse 0.0115 m vs target ≤ 0.0110 m (ATE ≤ 1.1x ref)",
+                       "  ab: mean_ratio 1 vs target < 1 (mean ATE B / mean ATE A < 1)"]  # equal: more digits
+    assert not (tmp_path / "B.md").exists()  # --check writes nothing
+
+
+def test_render_from_the_sidecar_marks_rows_and_names_their_commit(tmp_path):
+    from vslam.bench import render_bench
+    from vslam.bench_checks import git_commit
+
+    suite = _check_suite(tmp_path)
+    _sidecar(tmp_path, {"ref": _run(0.010), "variant": _run(0.0115), "words": _run(0.5)},
+             extra={"ref": {"commit": "1a2b3c4-dirty"}})
+    text = render_bench(suite, tmp_path / "B.md").read_text()
+    main_rows = {ln.split("|")[1].strip(): ln for ln in text.split("## Targets")[0].splitlines() if ln.startswith("| ")}
+    assert main_rows["ref"].endswith("| ✓ ATE ≤ 0.5 % of path; frames not tracked = 0 |")
+    assert main_rows["variant"].endswith("| ✗ ATE ≤ 1.1x ref; ms/frame vs ref |")
+    assert main_rows["words"].endswith("| looks right |")  # a target in words only: no mark
+    targets = {ln.split("|")[1].strip(): ln for ln in text.split("## Targets")[1].split("\n## ")[0].splitlines()
+               if ln.startswith("| ") and not ln.startswith("| row")}
+    assert targets["ref"] == ("| ref | ATE ≤ 0.5 % of path; frames not tracked = 0 | ATE 0.50 % of path (≤ 0.50 % of path) ✓; "
+                              "frames not tracked 0 (= 0) ✓ | ✓ | 2026-12-05 01:00 UTC, 1a2b3c4-dirty |")
+    assert "ms/frame 30.0 (≤ 20.0) ✗ open: issue 41 | ✗ | 2026-12-05 01:00 UTC, – |" in targets["variant"]
+    assert targets["words"] == "| words | looks right | – | – | 2026-12-05 01:00 UTC, – |"
+    assert "Written by `vslam bench` on 2026-12-05 01:00 UTC." in text  # when the sidecar was written, not now
+    # the commit a run records: HEAD's short hash, -dirty with uncommitted changes; None outside a repository
+    here = git_commit(ROOT)
+    assert here is None or __import__("re").fullmatch(r"[0-9a-f]{4,40}(-dirty)?", here)
+
+
+def test_readme_table_goes_between_the_markers_or_nowhere(tmp_path, caplog):
+    from vslam.bench import render_bench
+
+    suite = _check_suite(tmp_path)
+    _sidecar(tmp_path, {"ref": _run(0.010), "variant": _run(0.0115), "words": _run(0.5)}, extra={"ref": {"commit": "abc1234"}})
+    readme = tmp_path / "README.md"
+    before, after = "# x\n\nintro\n\n<!-- bench-table:start -->\n", "<!-- bench-table:end -->\n\nmore\n"
+    readme.write_text(before + "| old | table |\n" + after)
+    render_bench(suite, tmp_path / "B.md", readme)
+    text = readme.read_text()
+    assert text.startswith(before) and text.endswith(after) and "| old |" not in text
+    table = text[len(before):-len(after)].splitlines()
+    assert table[0] == "| row | what it measures | ATE / metric | target | ✓/✗ | measured (date, commit) |"
+    assert table[2:] == ["| ref | the reference run | ATE 0.0100 m, 30 ms/frame | ATE ≤ 0.5 % of path; frames not tracked = 0 "
+                         "| ✓ | 2026-12-05 01:00 UTC, abc1234 |",
+                         "| words | text only | ATE 0.5000 m, 30 ms/frame | looks right | – | 2026-12-05 01:00 UTC, – |"]
+    render_bench(suite, tmp_path / "B.md", readme)
+    assert readme.read_text() == text  # the same sidecar, the same README
+    readme.write_text("# no markers\n")
+    render_bench(suite, tmp_path / "B.md", readme)
+    assert readme.read_text() == "# no markers\n" and "markers <!-- bench-table:start -->" in caplog.text
+
+
+def test_the_suite_checks_hold_on_benchmarks_json_as_written():
+    """What CI runs (`vslam bench --check`): every check names a number its row records, and no miss but open ones."""
+    from vslam.bench import check_bench
+
+    lines, code = check_bench(ROOT / "configs/bench.yaml", ROOT / "BENCHMARKS.md")
+    assert code == 0, "\n".join(lines)
+    assert lines[-1].endswith(" 0 not measured"), lines[-1]

@@ -33,6 +33,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from vslam.bench_checks import METRICS, MISS, OP_TEXT, PASS, Check, Outcome, check_report, evaluate_row, fmt_value
+from vslam.bench_checks import git_commit, measured_on, readme_table, replace_between_markers, target_text, verdict
 from vslam.childproc import peak_rss_mb
 from vslam.config import deep_merge, from_dict, load_yaml, parse_overrides
 from vslam.errors import ConfigError
@@ -56,7 +58,9 @@ class BenchRow:
     config: str = ""  # pipeline YAML, relative to the suite file's folder's parent (the repo root) or absolute
     set: tuple[str, ...] = ()  # KEY=VALUE overrides
     note: str = ""
-    target: str = ""  # the number the issue asks for, shown beside ours
+    target: str = ""  # the number the issue asks for, in words (default: the checks written out)
+    check: tuple[Check, ...] = ()  # the target as machine checks (vslam.bench_checks), verdicts computed from the sidecar
+    headline: str = ""  # non-empty: a row of the README's results table, this its short "what it measures"
     experiment: str = ""  # kind "fusion": a key of vslam.fusion.experiments.EXPERIMENTS
     # kind "batch" (issue 10): the jobs are the grid's cartesian product of KEY: [values] on top of ``set``,
     # run serially, over a process pool and on a local Ray instance of ``workers`` each; wall times compared
@@ -387,12 +391,13 @@ def _json_safe(v: Any) -> Any:
 
 def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[str] | None = None,
               jobs_dir: Path = Path("runs/bench"), workers: int = 1, ray: str | None = None,
-              sweep: dict[str, list[Any]] | None = None) -> Path:
+              sweep: dict[str, list[Any]] | None = None, readme: Path | None = None) -> Path:
     """Run the suite's rows (or those named in ``only``), merge with the rows kept in the sidecar
     ``output.with_suffix('.json')`` and rewrite ``output`` with every row of the suite measured so far.
 
     workers > 1 / ray: the jobs of all rows go out together (``vslam.batch.run_jobs``). sweep {KEY: [values]}:
-    each selected row once per value, as rows ``NAME[KEY=V]`` of a suite of their own (nothing kept)."""
+    each selected row once per value, as rows ``NAME[KEY=V]`` of a suite of their own (nothing kept). readme: also
+    rewrite that file's results table of headline rows (``write_readme_table``; not for a sweep)."""
     from vslam.batch import Job, ab_jobs, ab_result, batch_row, run_jobs
 
     suite = load_suite(suite_path)
@@ -410,6 +415,7 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
     kept = {} if sweep else load_sidecar(side)
     now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     machine = machine_info()
+    commit = {"commit": git_commit(root)}  # the code the rows are measured with (-dirty: with uncommitted changes)
     plan: list[tuple[BenchRow, list[Job]]] = []
     ab_labels: dict[str, dict[str, Any]] = {}
     for row in rows:
@@ -424,7 +430,7 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
             over = deep_merge(over, {"dataset": {"kind": kind, "path": str(path)}})
         if row.kind == "batch":  # runs its own serial / pool / Ray passes
             result = batch_row(cfg, over, row.grid, row.workers, str(jobs_dir / row.name))
-            kept[row.name] = {"result": _json_safe(result), "measured": now, "repeat": 1, "machine": machine}
+            kept[row.name] = {"result": _json_safe(result), "measured": now, "repeat": 1, "machine": machine, **commit}
         elif row.kind == "fusion":  # one seeded, deterministic run: repeating it only costs time
             plan.append((row, [Job("fusion", row.experiment, over, str(jobs_dir / row.name))]))
         elif row.kind == "ab":  # A and B on every grid point, in the same pool as the other rows
@@ -442,16 +448,60 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
             log.info("%s: %s; its earlier measurement stays", row.name, result["skipped"])
             continue
         kept[row.name] = {"result": _json_safe(result), "measured": now, "repeat": 1 if row.kind == "ab" else len(jobs),
-                          "machine": machine, **parallel}
+                          "machine": machine, **parallel, **commit}
     dropped = sorted(set(kept) - names)
     if dropped:
         log.info("%s: rows no longer in the suite dropped: %s", side, ", ".join(dropped))
     entries = [(r, kept[r.name]) for r in suite.rows if r.name in kept]
     side.parent.mkdir(parents=True, exist_ok=True)
-    side.write_text(json.dumps({"version": SIDECAR_VERSION, "suite": str(suite_path),
+    side.write_text(json.dumps({"version": SIDECAR_VERSION, "suite": str(suite_path), "written": now, "machine": machine,
                                 "rows": {r.name: e for r, e in entries}}, indent=1, default=float) + "\n")
     output.write_text(render_markdown(suite, entries, now, machine))
+    if readme is not None and not sweep:
+        write_readme_table(suite, entries_by_name(entries), readme)
     return output
+
+
+def entries_by_name(entries: list[tuple[BenchRow, dict[str, Any]]]) -> dict[str, dict[str, Any]]:
+    return {row.name: e for row, e in entries}
+
+
+def _sidecar_header(path: Path, kept: dict[str, dict[str, Any]]) -> tuple[str, str]:
+    """(written, machine) of the bench run that last wrote the sidecar: its own fields, else its newest row's."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        data = {}
+    if data.get("written") and data.get("machine"):
+        return str(data["written"]), str(data["machine"])
+    newest = max(kept.values(), key=lambda e: str(e.get("measured", "")), default={})
+    return str(newest.get("measured", "–")), str(newest.get("machine", "–"))
+
+
+def render_bench(suite_path: str | Path, output: Path, readme: Path | None = None) -> Path:
+    """Rewrite ``output`` (and the README's results table) from the sidecar as it is: no job runs."""
+    suite = load_suite(suite_path)
+    side = sidecar_path(output)
+    kept = load_sidecar(side)
+    if not kept:
+        raise ConfigError(f"{side}: no measured rows to render")
+    now, machine = _sidecar_header(side, kept)
+    entries = [(r, kept[r.name]) for r in suite.rows if r.name in kept]
+    output.write_text(render_markdown(suite, entries, now, machine))
+    if readme is not None:
+        write_readme_table(suite, kept, readme)
+    return output
+
+
+def check_bench(suite_path: str | Path, output: Path) -> tuple[list[str], int]:
+    """``vslam bench --check``: the suite's checks on the sidecar of ``output`` as written -> (lines, exit code)."""
+    suite = load_suite(suite_path)
+    return check_report(list(suite.rows), load_sidecar(sidecar_path(output)))
+
+
+def write_readme_table(suite: BenchSuite, entries: dict[str, dict[str, Any]], readme: Path) -> bool:
+    """The headline rows' table between the README's bench-table markers (a warning, no write, without them)."""
+    return replace_between_markers(readme, readme_table(list(suite.rows), entries))
 
 
 def _composited(spec: dict[str, Any], jobs_dir: Path) -> tuple[str, Path]:
@@ -513,9 +563,11 @@ def _measured_lines(entries: list[tuple[BenchRow, dict[str, Any]]], machine: str
 
 
 def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, Any]]], now: str, machine: str) -> str:
-    """The whole BENCHMARKS.md from sidecar entries ({"result", "measured", "repeat", "machine"})."""
+    """The whole BENCHMARKS.md from sidecar entries ({"result", "measured", "repeat", "machine", "commit"})."""
     from vslam.batch import ab_table, batch_table
 
+    targets = _targets_table(entries)
+    entries = [(dataclasses.replace(row, target=_target_cell(row, entries_by_name(entries))), e) for row, e in entries]
     lines = [
         f"# {suite.title}",
         "",
@@ -573,6 +625,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     lines += _line_ba_table([(row, e["result"]) for row, e in entries if row.kind == "line_ba"])
     lines += batch_table([(row, e["result"]) for row, e in entries if row.kind == "batch"])
     lines += ab_table([(row, e["result"]) for row, e in entries if row.kind == "ab"])
+    lines += targets
     notes = [f"- **{row.name}**: {row.note}" for row, _ in entries if row.note]
     if notes:
         lines += ["", "## Notes", "", *notes]
@@ -581,6 +634,40 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     lines += ["", "Reproduce: `vslam bench --suite configs/bench.yaml" + (f" --repeat {rep}" if rep > 1 else "") +
               "` (one row: `--only NAME`; the other rows are kept from BENCHMARKS.json).", ""]
     return "\n".join(lines)
+
+
+def _target_cell(row: BenchRow, entries: dict[str, dict[str, Any]]) -> str:
+    """A table's target cell: the row's verdict, then its target (no mark for a target with no check)."""
+    text = target_text(row)
+    mark = verdict(evaluate_row(row, entries)) if row.check else ""
+    return f"{mark} {text}".strip()
+
+
+def _targets_table(entries: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
+    """Every row with a target: each check as measured vs its bound, the verdict, and what it was measured on."""
+    rows = [(row, e) for row, e in entries if row.target or row.check]
+    if not rows:
+        return []
+    by_name = entries_by_name(entries)
+    lines = md_section("Targets", "Each row's checks (configs/bench.yaml `check:`) evaluated on the tables above: "
+                       "✓ every check met, ✗ one missed, ✗ (open) only known misses (each says why: the issue that "
+                       "tracks it, or that the row needs re-measuring), – a target in words only. `vslam bench --check` fails on a miss that is not open. Commit: the code the row "
+                       "was measured with (– before commits were recorded).",
+                       ["row", "target", "measured", "✓/✗", "measured (date, commit)"])
+    for row, e in rows:
+        outs = evaluate_row(row, by_name)
+        got = "; ".join(_measured_cell(o) for o in outs) or "–"
+        lines.append(f"| {row.name} | {target_text(row)} | {got} | {verdict(outs)} | {measured_on(e)} |")
+    return lines
+
+
+def _measured_cell(o: Outcome) -> str:
+    """``ATE 0.0041 m (≤ 0.0045 m) ✓`` for one check."""
+    label = METRICS[o.check.metric].label if o.check.metric in METRICS else o.check.metric
+    got = fmt_value(o.check.metric, o.measured) if o.measured is not None else (o.why or "–")
+    bound = "" if o.bound is None else f" ({OP_TEXT[o.check.op]} {fmt_value(o.check.metric, o.bound)})"
+    mark = {"pass": PASS, "fixed": PASS, "miss": MISS, "known": f"{MISS} open: {o.check.open}"}.get(o.status, "–")
+    return f"{label} {got}{bound} {mark}"
 
 
 def md_section(title: str, intro: str, columns: list[str]) -> list[str]:

@@ -31,7 +31,7 @@ def _progress_bar(desc: str) -> tuple[Callable[[int, int], None], Callable[[], N
 
     def update(done: int, total: int) -> None:
         if "b" not in bar:
-            bar["b"] = tqdm(total=total, desc=desc, unit="frame", leave=False, disable=None)
+            bar["b"] = tqdm(total=total or None, desc=desc, unit="frame", leave=False, disable=None)  # 0: live
         bar["b"].n = done
         bar["b"].refresh()
 
@@ -43,7 +43,8 @@ def _progress_bar(desc: str) -> tuple[Callable[[int, int], None], Callable[[], N
 
 
 def _summary(result: Any, out: Path) -> None:
-    print(f"frames: {len(result.trajectory)} ({int(result.tracked.sum())} tracked), {result.fps:.1f} frames/s")
+    dropped = f", {result.dropped} dropped by the live queue" if getattr(result, "dropped", None) is not None else ""
+    print(f"frames: {len(result.trajectory)} ({int(result.tracked.sum())} tracked), {result.fps:.1f} frames/s{dropped}")
     print(f"trajectory: {result.paths.get('trajectory_tum', out)}")
     if result.eval is not None:
         if result.map_evals:  # tracking was lost and the maps never met: each is scored in its own frame
@@ -64,6 +65,26 @@ def _reclaim_sigterm() -> None:
         signal.signal(signal.SIGTERM, _on_sigterm)
 
 
+def _add_viewer_args(p: argparse.ArgumentParser) -> None:
+    """--viewer / --rrd / --serve: watch the run in Rerun (output.viewer; docs/viewer.md)."""
+    g = p.add_argument_group("viewer (Rerun, needs pip install 'vslam[viewer]'; docs/viewer.md)")
+    g.add_argument("--viewer", action="store_true", help="start the Rerun viewer and stream the run to it")
+    g.add_argument("--rrd", metavar="FILE", help="record the run to a Rerun file (open it with `rerun FILE`)")
+    g.add_argument("--serve", action="store_true", help="serve the Rerun web viewer (address printed)")
+
+
+def _viewer_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    v = {k: val for k, val in (("spawn", args.viewer), ("serve", args.serve), ("rrd", args.rrd)) if val}
+    return {"output": {"viewer": v}} if v else {}
+
+
+def _announce_viewer(cfg: Any) -> None:
+    if cfg.output.viewer.serve:
+        from vslam.viz.rerun_log import web_viewer_url
+
+        print(f"Rerun web viewer: {web_viewer_url(cfg.output.viewer)}", flush=True)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from vslam.config import deep_merge, parse_overrides
     from vslam.pipeline import Pipeline, PipelineConfig
@@ -75,6 +96,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     ds: dict[str, Any] = {}
     if args.data:
         ds["path"] = args.data
+    if args.live is not None:  # a camera, stream or video read as it comes (vslam.data.live)
+        if args.data or args.kind:
+            raise ConfigError("--live names the input: give it without --data / --kind")
+        ds.update(kind="live", path=args.live, sensor=args.sensor or "mono")
     if args.kind:
         ds["kind"] = args.kind
     if args.sensor:
@@ -90,12 +115,13 @@ def cmd_run(args: argparse.Namespace) -> int:
         over["output"] = {"dir": args.out}
     if args.no_eval:
         over["eval"] = {"enabled": False}
-    over = deep_merge(over, parse_overrides(args.set or []))
+    over = deep_merge(deep_merge(over, _viewer_overrides(args)), parse_overrides(args.set or []))
     cfg = PipelineConfig.load(preset_path(args.preset) if args.preset else args.config, over)
     if args.data and not args.kind and cfg.dataset.kind == "synthetic":
         # --data names a folder: a config made for the built-in sequence then reads it by its layout. A config
         # made for one dataset kind keeps it, and a folder of another layout is an error (open_dataset).
         cfg = dataclasses.replace(cfg, dataset=dataclasses.replace(cfg.dataset, kind="auto"))
+    _announce_viewer(cfg)
     update, close = _progress_bar("tracking")
     try:
         result = Pipeline(cfg).run(progress=update)
@@ -112,12 +138,15 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    from vslam.config import deep_merge
     from vslam.pipeline import Pipeline, PipelineConfig
 
     _reclaim_sigterm()
 
-    cfg = PipelineConfig.load(None, {"dataset": {"kind": "synthetic", "sensor": "rgbd", "max_frames": args.frames}, "output": {"dir": args.out}})
+    cfg = PipelineConfig.load(None, deep_merge({"dataset": {"kind": "synthetic", "sensor": "rgbd", "max_frames": args.frames},
+                                                "output": {"dir": args.out}}, _viewer_overrides(args)))
     print(f"vslam {__version__} demo: built-in synthetic room (RGB-D, 3 moving boxes, not masked yet), SLAM tracker")
+    _announce_viewer(cfg)
     update, close = _progress_bar("demo")
     try:
         result = Pipeline(cfg).run(progress=update)
@@ -179,14 +208,22 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from vslam.bench import run_bench
+    from vslam.bench import check_bench, render_bench, run_bench
 
     from vslam.batch import parse_sweep
 
     sweep = parse_sweep(args.sweep) if args.sweep else None
     output = Path(args.output or ("runs/bench/sweep.md" if sweep else "BENCHMARKS.md"))
-    out = run_bench(args.suite, output, repeat=args.repeat, only=args.only, jobs_dir=Path(args.runs),
-                    workers=args.jobs, ray=args.ray, sweep=sweep)
+    if args.check:  # no runs: the targets on the sidecar as written
+        lines, code = check_bench(args.suite, output)
+        print("\n".join(lines))
+        return code
+    readme = None if sweep or args.readme == "" else Path(args.readme or output.parent / "README.md")
+    if args.render:
+        out = render_bench(args.suite, output, readme)
+    else:
+        out = run_bench(args.suite, output, repeat=args.repeat, only=args.only, jobs_dir=Path(args.runs),
+                        workers=args.jobs, ray=args.ray, sweep=sweep, readme=readme)
     print(f"wrote {out}")
     return 0
 
@@ -203,6 +240,8 @@ def build_parser() -> argparse.ArgumentParser:
     which.add_argument("--preset", help="a shipped config by name (`vslam presets` lists them)")
     r.add_argument("--data", "-d", help="sequence folder (TUM, KITTI or EuRoC layout), image folder, video or ROS bag "
                                         "(docs/inputs.md); relative paths also tried under $VSLAM_DATA")
+    r.add_argument("--live", metavar="SOURCE", help="live input: camera index (0), stream URL (rtsp://...), realsense[:SERIAL] "
+                                                   "or a video file replayed at its rate; --camera gives the intrinsics")
     r.add_argument("--kind", choices=["auto", "tum", "kitti", "euroc", "synthetic", "images", "video", "bag"])
     r.add_argument("--camera", help="camera file (camera.yaml or ORB-SLAM3 settings) of an image folder, video or bag")
     r.add_argument("--times", help="frame times of an image folder or video: one timestamp per line")
@@ -213,11 +252,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field, e.g. odometry.n_features=2000")
     r.add_argument("--profile", action="store_true", help="print ms per stage and peak memory (also profile.json)")
     r.add_argument("--no-eval", action="store_true", help="do not read or evaluate the sequence's ground truth")
+    _add_viewer_args(r)
     r.set_defaults(fn=cmd_run)
 
     d = sub.add_parser("demo", help="run the built-in synthetic sequence end to end")
     d.add_argument("--out", "-o", default="runs/demo")
     d.add_argument("--frames", type=int, default=300)
+    _add_viewer_args(d)
     d.set_defaults(fn=cmd_demo)
 
     sub.add_parser("presets", help="list the shipped configs (presets) with what each runs").set_defaults(fn=cmd_presets)
@@ -255,6 +296,13 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
                    help="run the jobs as Ray tasks: on the cluster at ADDRESS, or a local Ray instance of --jobs CPUs")
     b.add_argument("--sweep", action="append", metavar="KEY=V1,V2", help="run each selected row once per value (repeatable: a grid)")
+    mode = b.add_mutually_exclusive_group()
+    mode.add_argument("--check", action="store_true",
+                      help="run nothing: check every row's targets on BENCHMARKS.json as written; exit 1 on a miss not marked open")
+    mode.add_argument("--render", action="store_true",
+                      help="run nothing: rewrite BENCHMARKS.md and the README's results table from BENCHMARKS.json")
+    b.add_argument("--readme", default=None, metavar="FILE",
+                   help="README whose bench-table markers get the headline rows (default: README.md beside --output; '' for none)")
     b.set_defaults(fn=cmd_bench)
     from vslam.fusion.experiments import add_cli as add_fusion_cli
 

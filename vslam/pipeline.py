@@ -28,6 +28,7 @@ import yaml
 
 from vslam.config import from_dict, load_config, to_dict
 from vslam.data.bag import BagTopics
+from vslam.data.live import LiveConfig, LiveSequence
 from vslam.data.select import kept_indices, select_frames
 from vslam.data.trajectory import Trajectory, TrajectoryWriter, write_trajectory
 from vslam.data.types import Frame, Sequence
@@ -38,6 +39,7 @@ from vslam.outputs import OUTPUT_ERRNOS, OutputError, describe_failure, prepare_
 from vslam.paths import data_root
 from vslam.tracking.baseline import FrameEstimate, FrameToFrameOdometry, OdometryConfig
 from vslam.tracking.slam import SlamConfig, SlamTracker
+from vslam.viz.rerun_log import ViewerConfig
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +48,7 @@ log = logging.getLogger(__name__)
 class DatasetConfig:
     """Which sequence to run. ``path`` relative to the data root ($VSLAM_DATA or ../shared/data) unless absolute."""
 
-    kind: Literal["auto", "tum", "kitti", "euroc", "synthetic", "images", "video", "bag"] = "synthetic"
+    kind: Literal["auto", "tum", "kitti", "euroc", "synthetic", "images", "video", "bag", "live"] = "synthetic"
     path: str = ""
     sensor: Literal["rgbd", "stereo", "mono"] = "rgbd"
     max_diff: float = 0.02  # seconds, image/depth/ground-truth association
@@ -62,6 +64,8 @@ class DatasetConfig:
     times: str = ""
     fps: float = 0.0
     topics: BagTopics = BagTopics()
+    # kind live: path is a camera index, stream URL, realsense[:SERIAL] or a video file (vslam.data.live)
+    live: LiveConfig = LiveConfig()
 
     def __post_init__(self) -> None:
         kept_indices(0, self.stride, self.drop)  # the same checks as when they are applied
@@ -75,6 +79,7 @@ class OutputConfig:
     # maps that were never merged into the one with most frames: kept in trajectory_final.tum.txt (each in its
     # own frame; stats.csv says which) or dropped from it
     unmerged: Literal["keep", "drop"] = "keep"
+    viewer: ViewerConfig = ViewerConfig()  # stream the run to Rerun (vslam.viz.rerun_log, docs/viewer.md); off
 
 
 @dataclass(frozen=True)
@@ -106,6 +111,7 @@ class RunResult:
     map_ids: np.ndarray | None = None
     map_evals: dict[int, EvalResult] = field(default_factory=dict)
     eval_groundtruth: Trajectory | None = None  # what ``eval`` was measured against
+    dropped: int | None = None  # live input: frames its queue dropped (stats.csv ``dropped``); None: recorded input
 
     @property
     def fps(self) -> float:
@@ -121,6 +127,12 @@ def open_dataset(cfg: DatasetConfig) -> Sequence:
         return SyntheticSequence(scfg, sensor=cfg.sensor)
     from vslam.data.registry import detect_kind, open_sequence
 
+    if cfg.kind == "live":  # frames as they come: nothing to select from, a queue that drops instead
+        if cfg.stride != 1 or cfg.drop:
+            raise ConfigError("dataset.stride and dataset.drop select frames of a recording; a live source has "
+                              "none to select (its queue drops the frames the tracker cannot take)")
+        return open_sequence(cfg.path, kind="live", camera=_data_path(cfg.camera), sensor=cfg.sensor,
+                             config=cfg.live)
     if not cfg.path:
         raise ConfigError("dataset.path is empty; give the sequence folder (or use kind: synthetic)")
     path = Path(cfg.path).expanduser()
@@ -209,7 +221,8 @@ def prefetch(seq: Sequence, n: int, depth: int = 3,
 # imu: "used" / "off" (visual-only: no usable IMU samples over this stretch, an IMU factor dropped as
 # inconsistent with vision, or until the keyframe that restarts the IMU chain), blank without an IMU.
 # ms_detector: the dynamic-object detector (slam.dynamic.source=detector), blank otherwise.
-STAT_COLUMNS = ("index", "timestamp", "map_id", "tracked", "status", "uncertain", "pose_std_m", "pose_std_deg", "n_features",
+# dropped: frames the live queue dropped since the previous row (``vslam.data.live``); 0 for recorded input.
+STAT_COLUMNS = ("index", "timestamp", "dropped", "map_id", "tracked", "status", "uncertain", "pose_std_m", "pose_std_deg", "n_features",
                 "n_matches", "n_inliers", "n_lines", "n_line_inliers", "imu", "ms_decode", "ms_features", "ms_detector",
                 "ms_dynamic", "ms_lines", "ms_depth", "ms_pose", "ms_mapping", "ms_map_create", "ms_map_fuse_cull",
                 "ms_map_ba", "ms_map_wait", "ms_map_loop", "ms_total")
@@ -328,7 +341,8 @@ class Pipeline:
         out = Path(out_dir or cfg.output.dir)
         prepare_run_dir(out, keep=(cfg.slam.load_map,))
         try:
-            return self._run(seq, out, progress)
+            with getattr(seq, "stop_on_interrupt", contextlib.nullcontext)():  # live: Ctrl-C ends the stream
+                return self._run(seq, out, progress)
         except OSError as e:  # an output that cannot be written: which one, and what the folder holds
             if e.errno not in OUTPUT_ERRNOS:
                 raise
@@ -339,10 +353,14 @@ class Pipeline:
         paths: dict[str, Path] = {"config": write_text(out / "config.yaml", yaml.safe_dump(to_dict(cfg), sort_keys=False))}
         writers = {f: TrajectoryWriter(out / f"trajectory.{f}.txt", f) for f in cfg.output.formats}
         paths.update({f"trajectory_{f}": w.path for f, w in writers.items()})
-        n_total = len(seq) if cfg.dataset.max_frames <= 0 else min(len(seq), cfg.dataset.max_frames)
+        live = isinstance(seq, LiveSequence)  # no length: frames until the stream ends; its queue drops
+        n_total = (cfg.dataset.max_frames or sys.maxsize) if live else \
+            len(seq) if cfg.dataset.max_frames <= 0 else min(len(seq), cfg.dataset.max_frames)
+        n_dropped, last_index = 0, -1
         ahead = cfg.tracker == "slam" and cfg.slam.frontend_thread
         # started first: the child's imports overlap building the tracker here
-        child = _frontend_process(seq, n_total, cfg) if ahead and cfg.slam.frontend_process else None
+        # (not for live input: the camera is this process's; its front end runs on the prefetch thread)
+        child = _frontend_process(seq, n_total, cfg) if ahead and cfg.slam.frontend_process and not live else None
         odo: FrameToFrameOdometry | SlamTracker
         try:
             if cfg.tracker == "slam":
@@ -365,12 +383,17 @@ class Pipeline:
         stats_path = out / "stats.csv"
         paths["stats"] = stats_path
         t_start = time.perf_counter()
+        viewer = None
         try:
+            if cfg.output.viewer.enabled:  # rerun is imported only then
+                from vslam.viz.rerun_log import RerunLogger
+
+                viewer = RerunLogger(cfg.output.viewer, seq, odo, cfg.eval.enabled, cfg.dataset.max_diff)
             slam_cfg = cfg.slam if cfg.tracker == "slam" else None
             with torch_threads(slam_cfg), blas_threads(slam_cfg), open(stats_path, "w", newline="") as fstats:
                 sw = csv.writer(fstats)
                 sw.writerow(STAT_COLUMNS)
-                frames = iter(child) if child is not None else prefetch(seq, n_total,
+                frames = iter(child) if child is not None else prefetch(seq, n_total, 1 if live else 3,
                                                                          prepare=odo.frontend if ahead else None)
                 k = -1
                 while True:
@@ -381,12 +404,14 @@ class Pipeline:
                     frame, front = item
                     k += 1
                     ms_decode = (time.perf_counter() - t_wait) * 1e3
+                    dropped = frame.index - last_index - 1 if live else 0  # live frames are numbered in grab order
+                    n_dropped, last_index = n_dropped + dropped, frame.index
                     if stamps and not frame.timestamp > stamps[-1]:
                         # A second image at the same instant would give a trajectory no reader accepts
                         # (time must increase); it is not tracked, only recorded in stats.csv.
                         log.warning("frame %d: timestamp %.6f does not increase (previous %.6f); frame skipped",
                                     frame.index, frame.timestamp, stamps[-1])
-                        row = {"index": frame.index, "timestamp": frame.timestamp, "tracked": 0,
+                        row = {"index": frame.index, "timestamp": frame.timestamp, "dropped": dropped, "tracked": 0,
                                "status": "duplicate_time", "uncertain": 1, "pose_std_m": float("nan"),
                                "pose_std_deg": float("nan")}
                         sw.writerow([_fmt_stat(c, row.get(c, "")) for c in STAT_COLUMNS])
@@ -400,7 +425,7 @@ class Pipeline:
                         for w in writers.values():
                             w.write(frame.timestamp, est.T_world_cam)
                     std_m, std_deg = est.pose_std()
-                    row = {"index": frame.index, "timestamp": frame.timestamp, "map_id": est.map_id,
+                    row = {"index": frame.index, "timestamp": frame.timestamp, "dropped": dropped, "map_id": est.map_id,
                            "tracked": int(est.tracked),
                            "status": est.status_name, "uncertain": int(est.uncertain), "pose_std_m": std_m,
                            "pose_std_deg": std_deg,
@@ -410,6 +435,8 @@ class Pipeline:
                     sw.writerow([_fmt_stat(c, row.get(c, "")) for c in STAT_COLUMNS])
                     fstats.flush()
                     stats.append(row)
+                    if viewer is not None:
+                        viewer.log_frame(frame, est, row)
                     backfill.update(est.backfill)
                     backfill_map.update({i: est.map_id for i in est.backfill})
                     if not est.has_pose:
@@ -421,12 +448,14 @@ class Pipeline:
                         tracked.append(est.tracked)
                         map_ids.append(est.map_id)
                     if progress:
-                        progress(k + 1, n_total)
+                        progress(k + 1, n_total if n_total < sys.maxsize else 0)  # 0: total unknown
         finally:
             for w in writers.values():
                 w.close()
             if child is not None:
                 child.close()
+            if viewer is not None:
+                viewer.close()
         seconds = time.perf_counter() - t_start
         paths.update(odo.finish(out))  # keyframes and map (SLAM); nothing for the baseline
         # monocular frames seen before the map existed (no pose then): localised once it did, they join the
@@ -473,6 +502,7 @@ class Pipeline:
         traj = Trajectory(np.array(stamps), np.array(poses).reshape(-1, 4, 4))
         result = RunResult(traj, np.array(tracked, bool), stats, None, paths, seconds)
         result.map_ids = final_ids
+        result.dropped = n_dropped if live else None
         if stats and not any(tracked):
             # no map was ever made (or only predicted poses): not a result, whatever was written
             result.error = TrackingError(
@@ -483,5 +513,6 @@ class Pipeline:
                 self._evaluate(seq, traj, result, out)
             except VslamError as e:  # the trajectory is written: report the ground truth's problem after it
                 result.error = e
-        log.info("%d frames in %.1f s (%.1f frames/s), %d tracked", len(traj), seconds, result.fps, int(np.sum(tracked)))
+        log.info("%d frames in %.1f s (%.1f frames/s), %d tracked%s", len(traj), seconds, result.fps, int(np.sum(tracked)),
+                 f", {n_dropped} dropped by the live queue" if live else "")
         return result

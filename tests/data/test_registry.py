@@ -19,6 +19,7 @@ from vslam.data.bag import BagSequence
 from vslam.data.euroc import EurocSequence
 from vslam.data.images import ImageFolderSequence
 from vslam.data.kitti import KittiSequence
+from vslam.data.live import LiveSequence
 from vslam.data.registry import READERS, detect_kind, open_sequence
 from vslam.data.tum import TumRgbdSequence
 from vslam.data.video import VideoSequence
@@ -29,7 +30,7 @@ DOWNLOAD = Path(__file__).resolve().parents[2] / "datasets" / "download.py"
 
 def test_readers_table() -> None:
     assert READERS == {"tum": TumRgbdSequence, "kitti": KittiSequence, "euroc": EurocSequence,
-                       "images": ImageFolderSequence, "video": VideoSequence, "bag": BagSequence}
+                       "images": ImageFolderSequence, "video": VideoSequence, "bag": BagSequence, "live": LiveSequence}
 
 
 def test_detects_each_layout(tmp_path: Path) -> None:

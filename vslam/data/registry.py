@@ -19,6 +19,7 @@ from vslam.data.bag import BagSequence, is_bag
 from vslam.data.euroc import EurocSequence, is_euroc_layout
 from vslam.data.images import ImageFolderSequence, is_images_layout
 from vslam.data.kitti import KittiSequence, is_kitti_layout
+from vslam.data.live import LiveSequence
 from vslam.data.tum import TumRgbdSequence, is_tum_layout
 from vslam.data.types import Sequence
 from vslam.data.video import VideoSequence, is_video_file
@@ -31,6 +32,7 @@ READERS: dict[str, Callable[..., Sequence]] = {
     "images": ImageFolderSequence,
     "video": VideoSequence,
     "bag": BagSequence,
+    "live": LiveSequence,  # a camera index, stream URL or video file (no layout to detect: kind="live" only)
     # "synthetic": registered by the lead from vslam.data.synthetic (not imported here).
 }
 

@@ -70,10 +70,9 @@ class SlamConfig:
     frontend_thread: bool = True
     # With frontend_thread: decode the frames and run that front end in a child process instead of a thread
     # (``vslam.tracking.frontend_process``: GTSAM's BA holds the GIL, and a thread cannot work ahead through it).
-    # The same numbers bit for bit. 2026-12-04 21:37, 2 cores, alone, median of 3: TUM teddy ORB-only 32.7 -> 29.8
-    # ms/frame, the learned pipeline 96.5 -> 71.8 (bench rows tum-teddy-rgbd / tum-teddy-people-rgbd-learned and
-    # their -frontend-thread rows). The child's start (~0.5 s) counts too: on short subsets it costs more than
-    # it saves (EuRoC stereo, 95 frames: 43.6 vs 38.8 ms/frame; README). A sequence that cannot be pickled to the
+    # The same numbers bit for bit; faster where the front end is what tracking waits for (TUM teddy ORB-only, the
+    # learned pipeline). The child's start (~0.5 s) counts too: on short subsets it costs more than it saves
+    # (docs/speed.md). A sequence that cannot be pickled to the
     # child runs on the thread.
     frontend_process: bool = True
     # LSD segments on a thread of their own, beside the networks: on a GPU ConvPoint and the detector take ~5 ms
@@ -83,16 +82,13 @@ class SlamConfig:
     lines_beside_networks: bool | None = None
     # Intra-op threads of the networks (torch) while ``Pipeline.run`` lasts; 0 = the CPUs this process may use,
     # less one for the tracking thread when the front end has its own. torch's default (every core) put three
-    # busy threads on the 2-core VM: the learned pipeline on the TUM walkers composite ran at 4.4 / 4.5 frames/s,
-    # with one torch thread 5.4 / 5.0 (alternating runs, 2026-12-03; the detector 93 -> 60 ms a frame).
+    # busy threads on the 2-core VM and slowed the learned pipeline (docs/speed.md).
     # The thread count changes float summation order, hence trajectories a little (ATE 0.0174 vs 0.0175 m there).
     torch_threads: int = 0
     # numpy's BLAS (OpenBLAS) threads while ``Pipeline.run`` lasts (and in the BA worker process); 0 = its default
     # (every core). Its matrices here are small (BA windows, batched 4x4 line solves): a second OpenBLAS thread
-    # spins beside them and takes the core the front-end thread needs. Corridor RGB-D with lines, 20 local BAs
-    # (2026-12-04): CPU per BA with lines 122.9 ms on the solving thread + 72.7 ms spun by the BLAS thread, 84.4 ms
-    # in all with one thread; points-only BA 60.2 vs 55.6 ms. Same trajectories byte for byte (RGB-D corridor with
-    # lines, TUM teddy).
+    # spins beside them and takes the core the front-end thread needs: with lines, local BA spent more than
+    # twice the CPU with it (docs/lines.md). Same trajectories byte for byte.
     blas_threads: int = 1
 
 
@@ -109,6 +105,20 @@ class FrontEnd:
     depth: np.ndarray | None
     ms: dict[str, float]
     boxes: np.ndarray | None = None
+
+
+@dataclass
+class FrameView:
+    """What the last ``track`` call saw, for viewers (``vslam.viz``): references, never copied, never read back
+    by tracking. ``front``: the frame's ``FrontEnd`` (all keypoints, segments, detector boxes); ``kept`` (M,)
+    indices of the keypoints dynamic filtering let through (None: all); ``point_ids`` (M,) map point matched per
+    kept keypoint, -1 none (None: not tracked against a map, e.g. the map's first frame); ``moving`` (M,) bool,
+    flagged by the geometric motion check (None: no check)."""
+
+    front: FrontEnd
+    kept: np.ndarray | None = None
+    point_ids: np.ndarray | None = None
+    moving: np.ndarray | None = None
 
 
 class SlamTracker:
@@ -191,6 +201,7 @@ class SlamTracker:
         # (keyframe, its image, frame count) whose local BA the worker is solving and whose loop step waits for it
         self._pending: tuple | None = None
         self._rel_scale = 1.0  # a monocular loop's scale at the keyframe, for the frame tracked after it
+        self.view: FrameView | None = None  # the last frame as tracking saw it (read-only, for vslam.viz)
 
     # -- per-frame --------------------------------------------------------------
     def _extract(self, frame: Frame) -> tuple[Features, Features | None]:
@@ -251,10 +262,12 @@ class SlamTracker:
             front = self.frontend(frame)
         feats, lines, t_dyn = front.feats, front.lines, time.perf_counter()
         if self.dynamic is not None:  # issue 5: keypoints and segments on moving objects reach neither tracking nor mapping
-            feats = feats.subset(np.flatnonzero(self.dynamic.keep(frame, feats, front.boxes)))
+            kept = np.flatnonzero(self.dynamic.keep(frame, feats, front.boxes))
+            feats = feats.subset(kept)
             if lines is not None and len(lines):
                 lines = lines.subset(np.flatnonzero(self.dynamic.keep_segments(frame, lines.raw, lines.segs)))
         ms_dynamic = (time.perf_counter() - t_dyn) * 1e3
+        self.view = FrameView(front, kept if self.dynamic is not None else None)
         if self.lines is not None:
             self._line_feats, self._line_ids = lines, None
             if self.mono_init is not None and self.ref_kf is None:  # the initialiser's reference may be any recent frame
@@ -299,6 +312,7 @@ class SlamTracker:
             if T_imu is not None:  # once initialised, IMU propagation replaces constant velocity
                 T_pred = T_imu
             res = self._measure(frame, feats, ur, T_pred)
+            self.view.point_ids = res.point_ids  # (``_drop_moving`` replaces, never edits, the array)
             est.n_matches, est.n_inliers, est.tracked = res.n_matches, res.n_inliers, res.ok
             est.status, est.pose_cov = self._status(res.ok, res.method, depth), res.cov
             if res.ok:
@@ -410,6 +424,7 @@ class SlamTracker:
         """Geometric check on the tracked pose (``vslam.dynamic``): keypoints found moving leave the frame before
         mapping, and the map points they matched are deleted so later frames cannot track against them."""
         moving = self.dynamic.observe(self.T_world_cam, res.ok)  # type: ignore[union-attr]
+        self.view.moving = moving  # type: ignore[union-attr]
         if not moving.any():
             return feats, depth, ur
         for pid in res.point_ids[moving & (res.point_ids >= 0)]:
