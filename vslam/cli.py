@@ -329,6 +329,9 @@ def build_parser() -> argparse.ArgumentParser:
     from vslam.dynamic.composite import add_cli as add_make_dynamic_cli
 
     add_make_dynamic_cli(sub)
+    from vslam.dynamic.eval_detector import add_cli as add_eval_detector_cli
+
+    add_eval_detector_cli(sub)
     return p
 
 

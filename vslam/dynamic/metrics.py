@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+IOU_THRESHOLDS = np.linspace(0.5, 0.95, 10)  # COCO's AP50-95 thresholds (pycocotools: the same linspace)
+
 
 def _iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     lt = np.maximum(a[:, None, :2], b[None, :, :2])
@@ -13,27 +15,46 @@ def _iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return inter / (area(a)[:, None] + area(b)[None, :] - inter + 1e-9)
 
 
+def match(db: np.ndarray, ds: np.ndarray, gb: np.ndarray, iou_thr: float,
+          ignore: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Greedy matching of one image's detections of one class, best score first, each to the unmatched ground
+    truth box of highest IoU (>= ``iou_thr``), as pycocotools' COCOeval. ``ignore`` (M,4): regions (KITTI
+    DontCare) treated as COCO crowd boxes: a detection left unmatched whose intersection covers ``iou_thr`` of
+    its own area is ignored. -> gt (K,) int, the ground truth box each detection matched or -1, and ignored (K,)
+    bool, both in the order of ``db``."""
+    k = len(db)
+    gt, ign = np.full(k, -1, np.int64), np.zeros(k, bool)
+    order = np.argsort(-ds, kind="stable")
+    used = np.zeros(len(gb), bool)
+    iou = _iou(db[order], gb) if len(gb) and k else np.zeros((k, 0))
+    for r, i in enumerate(order):
+        j = int(np.argmax(np.where(used, -1, iou[r]))) if len(gb) else -1
+        if j >= 0 and not used[j] and iou[r, j] >= iou_thr:
+            used[j], gt[i] = True, j
+    if ignore is not None and len(ignore) and k:
+        lt = np.maximum(db[:, None, :2], ignore[None, :, :2])
+        rb = np.minimum(db[:, None, 2:], ignore[None, :, 2:])
+        inter = np.clip(rb - lt, 0, None).prod(-1)
+        area = np.clip(db[:, 2:] - db[:, :2], 0, None).prod(-1)
+        ign = (gt < 0) & ((inter / np.maximum(area, 1e-9)[:, None]) >= iou_thr).any(1)
+    return gt, ign
+
+
 def average_precision(dets: list[tuple[np.ndarray, np.ndarray, np.ndarray]], gts: list[tuple[np.ndarray, np.ndarray]],
-                      cls: int, iou_thr: float) -> float:
-    """dets per image: (boxes (K,4), scores (K,), classes (K,)); gts per image: (boxes (G,4), classes (G,)).
-    -> AP of class ``cls`` (NaN when the class has no ground truth)."""
+                      cls: int, iou_thr: float, ignore: list[np.ndarray] | None = None) -> float:
+    """dets per image: (boxes (K,4), scores (K,), classes (K,)); gts per image: (boxes (G,4), classes (G,));
+    ``ignore`` per image: (M,4) regions of any class (``match``). -> AP of class ``cls`` (NaN when the class has no
+    ground truth). Same numbers as pycocotools' AP for one category, area "all", at most 100 detections per image
+    (tests/dynamic/test_eval_detector.py)."""
     n_gt = sum(int((g[1] == cls).sum()) for g in gts)
     if n_gt == 0:
         return float("nan")
     scores, tps = [], []
-    for (db, ds, dc), (gb, gc) in zip(dets, gts):
+    for n, ((db, ds, dc), (gb, gc)) in enumerate(zip(dets, gts)):
         db, ds = db[dc == cls], ds[dc == cls]
-        gb = gb[gc == cls]
-        order = np.argsort(-ds, kind="stable")
-        used = np.zeros(len(gb), bool)
-        iou = _iou(db[order], gb) if len(gb) and len(db) else np.zeros((len(db), 0))
-        for r, i in enumerate(order):
-            j = int(np.argmax(np.where(used, -1, iou[r]))) if len(gb) else -1
-            tp = j >= 0 and not used[j] and iou[r, j] >= iou_thr
-            if tp:
-                used[j] = True
-            scores.append(ds[i])
-            tps.append(tp)
+        gt, ign = match(db, ds, gb[gc == cls], iou_thr, None if ignore is None else ignore[n])
+        scores += list(ds[~ign])
+        tps += list(gt[~ign] >= 0)
     if not scores:
         return 0.0
     o = np.argsort(-np.array(scores), kind="stable")
@@ -46,15 +67,15 @@ def average_precision(dets: list[tuple[np.ndarray, np.ndarray, np.ndarray]], gts
     return float(np.mean([precision[i] if i < len(precision) else 0.0 for i in idx]))
 
 
-def detection_report(dets: list, gts: list, names: list[str]) -> dict[str, float]:
+def detection_report(dets: list, gts: list, names: list[str], ignore: list[np.ndarray] | None = None) -> dict[str, float]:
     """{AP50/<name>, AP50-95/<name>} per class with ground truth, plus mAP50 and mAP50-95 over those classes."""
     out: dict[str, float] = {}
     ap50s, ap5095s = [], []
     for c, name in enumerate(names):
-        ap50 = average_precision(dets, gts, c, 0.5)
+        ap50 = average_precision(dets, gts, c, 0.5, ignore)
         if np.isnan(ap50):
             continue
-        ap = float(np.mean([average_precision(dets, gts, c, t) for t in np.arange(0.5, 0.96, 0.05)]))
+        ap = float(np.mean([average_precision(dets, gts, c, t, ignore) for t in IOU_THRESHOLDS]))
         out[f"AP50/{name}"], out[f"AP50-95/{name}"] = ap50, ap
         ap50s.append(ap50)
         ap5095s.append(ap)

@@ -1,0 +1,216 @@
+"""``vslam eval-detector DATA`` (issue 40): a detector on a labelled folder of real photos, in the terms SLAM cares
+about. Person and vehicle AP50 / AP50-95 (COCO-style, ``metrics``), recall and precision at the score threshold
+SLAM masks with, and where the folder has instance masks (Penn-Fudan) the mask IoU of what SLAM masks.
+
+A box detector masks its boxes, so its "mask" is the filled box: ``mask_iou`` is the IoU of a matched detection's
+box (IoU >= 0.5, score >= the threshold) with the instance's true mask, the baseline a mask head must beat;
+``gt_box_mask_iou`` is the same for the annotated box (the best any box can do); ``image_mask_iou`` compares the
+union of the detected boxes with the union of the true masks per image (pixels SLAM drops vs pixels it should).
+
+Detections are mapped to ``EVAL_CLASSES`` by name (``datasets.class_index``): the shipped detector's ``car`` and
+FastestDet's COCO car / bus / truck / motorcycle are all ``vehicle``; other classes are dropped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from vslam.dynamic.datasets import EVAL_CLASSES, Record, Split, class_index, load_records
+from vslam.dynamic.metrics import detection_report, match
+from vslam.errors import ConfigError
+
+log = logging.getLogger(__name__)
+MATCH_IOU = 0.5  # box IoU for recall, precision and the mask IoU's match (AP50's)
+
+
+class BoxDetector(Protocol):
+    def detect(self, image: np.ndarray) -> Any: ...  # -> Detections (boxes, scores, class_ids, class_names)
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """One image's detections in eval classes: boxes (K,4) x1,y1,x2,y2 pixels, scores (K,), classes (K,) int into
+    ``EVAL_CLASSES``."""
+
+    boxes: np.ndarray
+    scores: np.ndarray
+    classes: np.ndarray
+
+
+def predict(det: BoxDetector, records: list[Record], progress: Any = None) -> list[Prediction]:
+    """Run ``det`` on every record's image; keep the detections whose class maps to an eval class."""
+    out = []
+    for n, rec in enumerate(records):
+        d = det.detect(rec.image())
+        cls = np.array([class_index(str(name), EVAL_CLASSES) for name in d.class_names], dtype=object)
+        keep = np.array([c is not None for c in cls], bool)
+        out.append(Prediction(np.asarray(d.boxes, np.float64)[keep].reshape(-1, 4), np.asarray(d.scores, np.float64)[keep],
+                              cls[keep].astype(np.int64)))
+        if progress is not None:
+            progress(n + 1, len(records))
+    return out
+
+
+def box_mask(box: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(H,W) bool: the pixels of ``box`` (x1,y1,x2,y2, x2/y2 exclusive), rounded to the pixel grid and clipped."""
+    h, w = shape
+    x1, y1, x2, y2 = np.round(box).astype(int)
+    m = np.zeros((h, w), bool)
+    m[max(y1, 0):min(y2, h), max(x1, 0):min(x2, w)] = True
+    return m
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / union) if union else 1.0
+
+
+def evaluate(records: list[Record], preds: list[Prediction], threshold: float) -> dict[str, Any]:
+    """-> {"images", "threshold", per class "<metric>/<class>": AP50, AP50-95, recall, precision, n_gt; and where
+    the records have masks mask_iou, gt_box_mask_iou, image_mask_iou (+ n_masks)} (module docstring)."""
+    gts = [(r.boxes, r.labels) for r in records]
+    dets = [(p.boxes, p.scores, p.classes) for p in preds]
+    ignore = [r.ignore for r in records]
+    rep: dict[str, Any] = {"images": len(records), "threshold": threshold}
+    ap = detection_report(dets, gts, list(EVAL_CLASSES), ignore)
+    for c, name in enumerate(EVAL_CLASSES):
+        n_gt = int(sum((r.labels == c).sum() for r in records))
+        rep[f"n_gt/{name}"] = n_gt
+        if not n_gt:
+            continue
+        tp = fp = 0
+        for rec, p in zip(records, preds):
+            sel = (p.classes == c) & (p.scores >= threshold)
+            gt, ign = match(p.boxes[sel], p.scores[sel], rec.boxes[rec.labels == c], MATCH_IOU, rec.ignore)
+            tp, fp = tp + int((gt >= 0).sum()), fp + int(((gt < 0) & ~ign).sum())
+        rep[f"AP50/{name}"], rep[f"AP50-95/{name}"] = ap[f"AP50/{name}"], ap[f"AP50-95/{name}"]
+        rep[f"recall/{name}"] = tp / n_gt
+        rep[f"precision/{name}"] = tp / (tp + fp) if tp + fp else float("nan")
+    rep.update(mask_report(records, preds, threshold))
+    return rep
+
+
+def mask_report(records: list[Record], preds: list[Prediction], threshold: float) -> dict[str, Any]:
+    """Mask IoUs of the boxes with instance masks ({} when none has any), class by class."""
+    inst: dict[int, list[float]] = {}
+    oracle: dict[int, list[float]] = {}
+    image: dict[int, list[float]] = {}
+    for rec, p in zip(records, preds):
+        masks = rec.masks()
+        if masks is None:
+            continue
+        has = rec.mask_ids > 0
+        for c in np.unique(rec.labels[has]):
+            gm, gb = masks[has & (rec.labels == c)], rec.boxes[has & (rec.labels == c)]
+            sel = (p.classes == c) & (p.scores >= threshold)
+            db = p.boxes[sel]
+            gt, _ = match(db, p.scores[sel], gb, MATCH_IOU)
+            for i in np.nonzero(gt >= 0)[0]:
+                inst.setdefault(c, []).append(_iou(box_mask(db[i], gm.shape[1:]), gm[gt[i]]))
+            oracle.setdefault(c, []).extend(_iou(box_mask(b, gm.shape[1:]), m) for b, m in zip(gb, gm))
+            drop = np.zeros(gm.shape[1:], bool)
+            for b in db:
+                drop |= box_mask(b, drop.shape)
+            image.setdefault(c, []).append(_iou(drop, gm.any(0)))
+    out: dict[str, Any] = {}
+    for c, name in enumerate(EVAL_CLASSES):
+        if c in oracle:
+            out[f"mask_iou/{name}"] = float(np.mean(inst[c])) if inst.get(c) else float("nan")
+            out[f"n_masks/{name}"] = len(inst.get(c, []))
+            out[f"gt_box_mask_iou/{name}"] = float(np.mean(oracle[c]))
+            out[f"image_mask_iou/{name}"] = float(np.mean(image[c]))
+    return out
+
+
+def format_report(rep: dict[str, Any], title: str) -> list[str]:
+    """Markdown table, one row per class with ground truth."""
+    masks = any(k.startswith("mask_iou/") for k in rep)
+    head = f"| {title} | GT | AP50 | AP50-95 | recall@{rep['threshold']:g} | precision@{rep['threshold']:g} |"
+    head += " mask IoU (matched, box as mask) | GT box as mask | image mask IoU |" if masks else ""
+    lines = [head, "|---" * (head.count("|") - 1) + "|"]
+    f = lambda k: f"{rep[k]:.3f}" if k in rep and rep[k] == rep[k] else "–"  # noqa: E731 (NaN -> –)
+    for name in EVAL_CLASSES:
+        if not rep.get(f"n_gt/{name}"):
+            continue
+        row = f"| {name} | {rep[f'n_gt/{name}']} | {f(f'AP50/{name}')} | {f(f'AP50-95/{name}')} | {f(f'recall/{name}')} | " \
+              f"{f(f'precision/{name}')} |"
+        if masks:
+            row += f" {f(f'mask_iou/{name}')} | {f(f'gt_box_mask_iou/{name}')} | {f(f'image_mask_iou/{name}')} |"
+        lines.append(row)
+    return lines
+
+
+def build_detector(model: str, teacher: bool, threads: int, img_size: int = 0) -> tuple[BoxDetector, float, str]:
+    """-> (detector emitting every box above 0.001, its SLAM score threshold, a name). Ours: the checkpoint at
+    ``model`` (default the shipped one) at ``img_size`` (0: the size it was trained at, as slam.dynamic.img_size),
+    threshold ``DynamicConfig``'s; the teacher: FastestDet (``model`` = its ONNX file, default the data folder's;
+    its input is fixed) at ``TEACHER_THRESHOLD``."""
+    if teacher:
+        from vslam.dynamic.teacher import TEACHER_THRESHOLD, FastestDet
+
+        if img_size:
+            raise ConfigError("--img-size sets our detector's input; FastestDet's is fixed (352x352)")
+
+        det = FastestDet(model, threads=threads)
+        return det, TEACHER_THRESHOLD, "FastestDet"
+    import torch
+
+    from vslam.dynamic.config import DynamicConfig
+    from vslam.dynamic.detector import default_weights, load_detector
+
+    torch.set_num_threads(threads)
+    if img_size < 0 or img_size % 32:
+        raise ConfigError(f"--img-size must be 0 or a positive multiple of 32, got {img_size}")
+    path = Path(model) if model else default_weights()
+    det = load_detector(path, conf=0.001, field="--model")
+    det.img_size = img_size or det.img_size
+    return det, DynamicConfig().score_threshold, f"{path.name}@{det.img_size}"
+
+
+def add_cli(sub: argparse._SubParsersAction) -> None:
+    e = sub.add_parser("eval-detector", help="AP, recall at the SLAM threshold and mask IoU of a detector on a labelled folder")
+    e.add_argument("data", help="folder in YOLO (COCO128), PASCAL (Penn-Fudan) or KITTI-object layout (auto-detected); "
+                                "relative paths also tried under $VSLAM_DATA")
+    e.add_argument("--split", default="val", choices=["val", "train", "all"], help="the fixed split (docs/detector-data.md)")
+    e.add_argument("--model", default="", help="detector checkpoint (default the shipped one); with --teacher an ONNX file")
+    e.add_argument("--teacher", action="store_true", help="evaluate FastestDet through onnxruntime (extra vslam[teacher])")
+    e.add_argument("--threshold", type=float, help="score threshold of recall / precision / mask IoU "
+                                                   "(default: SLAM's slam.dynamic.score_threshold; 0.5 for --teacher)")
+    e.add_argument("--img-size", type=int, default=0, help="our detector's input size (longer side; 0 = the size "
+                                                             "it was trained at, as slam.dynamic.img_size)")
+    e.add_argument("--threads", type=int, default=2, help="CPU threads of the network")
+    e.add_argument("--json", help="also write the report as JSON here")
+    e.set_defaults(fn=cmd_eval_detector)
+
+
+def cmd_eval_detector(args: argparse.Namespace) -> int:
+    import json
+
+    from tqdm import tqdm
+
+    from vslam.paths import data_root
+
+    data = Path(args.data)
+    if not data.exists() and not data.is_absolute() and (data_root() / data).exists():
+        data = data_root() / data
+    split: Split = args.split
+    layout, records = load_records(data, split)
+    det, slam_threshold, name = build_detector(args.model, args.teacher, args.threads, args.img_size)
+    threshold = slam_threshold if args.threshold is None else args.threshold
+    if not 0 <= threshold <= 1:
+        raise ConfigError(f"--threshold is a score in [0, 1], got {threshold}")
+    with tqdm(total=len(records), desc="detecting", unit="image", leave=False, disable=None) as bar:
+        preds = predict(det, records, lambda done, total: bar.update(done - bar.n))
+    rep = evaluate(records, preds, threshold)
+    rep.update(model=name, data=str(data), layout=layout, split=split)
+    print(f"{name} on {data} ({layout}, split {split}, {len(records)} images)")
+    print("\n".join(format_report(rep, name)))
+    if args.json:
+        Path(args.json).write_text(json.dumps(rep, indent=2) + "\n")
+    return 0
