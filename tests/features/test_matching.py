@@ -2,6 +2,7 @@
 
 import cv2
 import numpy as np
+import pytest
 
 from vslam.data.synthetic import SyntheticConfig, SyntheticSequence
 from vslam.features import EXTRACTORS, FeatureConfig, make_extractor
@@ -180,3 +181,36 @@ def test_epipolar_matching_finds_what_the_ratio_test_loses():
     assert correct.mean() > 0.97 and correct.sum() > 0.8 * (~near).sum()
     assert not near[m[:, 0]].any()
     assert len(np.unique(m[:, 1])) == len(m)
+
+
+def _epipolar_reference(uv_a, desc_a, uv_b, desc_b, F, tol_b, epipole, min_px, max_dist, ratio):
+    """match_epipolar written plainly: the whole (Na,Nb) band in float64, candidates through best_pairs."""
+    lines = np.c_[uv_a, np.ones(len(uv_a))] @ F.T
+    lines /= np.linalg.norm(lines[:, :2], axis=1)[:, None]
+    ok = np.abs(lines[:, :2] @ uv_b.T + lines[:, 2:3]) <= np.broadcast_to(tol_b, (len(uv_b),))[None, :]
+    ok &= (np.linalg.norm(uv_b - epipole, axis=1) >= min_px)[None, :]
+    ia, jb = np.nonzero(ok)
+    return best_pairs(ia, jb, hamming_rows(desc_a[ia], desc_b[jb]).astype(float), max_dist, ratio)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_epipolar_matching_equals_the_plain_band_search(seed):
+    """The blocked float32 band test and the grouped best-pair search return what the plain float64 search
+    does, pair for pair (random views, 1500 x 1400 keypoints, per-keypoint tolerances, repeated descriptors)."""
+    rng = np.random.default_rng(seed)
+    K = np.array([[700.0, 0, 600], [0, 700.0, 180], [0, 0, 1]])
+    T_b_a = make_T(so3_exp(rng.normal(0, 0.05, 3)), rng.normal(0, 0.5, 3) + [0, 0, 1.0])
+    F = np.linalg.inv(K).T @ skew(T_b_a[:3, 3]) @ T_b_a[:3, :3] @ np.linalg.inv(K)
+    epipole = (K @ T_b_a[:3, 3])[:2] / T_b_a[2, 3]
+    uv_a, uv_b = rng.uniform([0, 0], [1200, 370], (1500, 2)), rng.uniform([0, 0], [1200, 370], (1400, 2))
+    lines = np.c_[uv_a[:700], np.ones(700)] @ F.T  # the first 700 of b on their twin's epipolar line, +-1 px
+    x = rng.uniform(0, 1200, 700)
+    uv_b[:700] = np.c_[x, -(lines[:, 0] * x + lines[:, 2]) / lines[:, 1] + rng.uniform(-1, 1, 700)]
+    desc_a = rng.integers(0, 256, (1500, 32), dtype=np.uint8)
+    desc_b = np.vstack([_flip_bits(desc_a[:700], 6, rng), rng.integers(0, 256, (700, 32), dtype=np.uint8)])
+    tol = np.sqrt(3.84) * 1.2 ** rng.integers(0, 8, 1400)
+    args = (uv_a, desc_a, uv_b, desc_b, F, tol, epipole, 10.0 * np.sqrt(1.2 ** rng.integers(0, 8, 1400)))
+    want = _epipolar_reference(*args, max_dist=80, ratio=0.8)
+    got = match_epipolar(*args, max_dist=80, ratio=0.8)
+    assert len(want) > 20
+    np.testing.assert_array_equal(got, want)

@@ -176,6 +176,9 @@ def _one_per_target(best_q: np.ndarray, best_t: np.ndarray, best_d: np.ndarray) 
     return out[np.argsort(out[:, 0], kind="stable")]
 
 
+_EPI_BLOCK = 128  # rows of match_epipolar's band test at a time: (128, ~2000) float32 stays in cache
+
+
 def match_epipolar(
     uv_a: np.ndarray,
     desc_a: np.ndarray,
@@ -202,14 +205,59 @@ def match_epipolar(
     empty = np.zeros((0, 2), np.int64)
     if len(uv_a) == 0 or len(uv_b) == 0:
         return empty
+    tol = np.broadcast_to(np.asarray(tol_b, dtype=np.float64), (len(uv_b),))
+    cols = np.arange(len(uv_b))
+    if epipole_b is not None:  # keypoints near the epipole leave the search before the (Na,Nb) band test
+        far = np.linalg.norm(uv_b - epipole_b, axis=1) >= np.broadcast_to(np.asarray(min_epipole_px, np.float64), (len(uv_b),))
+        cols = cols[far]
+    if len(cols) == 0:
+        return empty
     lines = np.c_[uv_a, np.ones(len(uv_a))] @ F_ba.T  # (Na,3) epipolar line in b of each a
     lines /= np.maximum(np.linalg.norm(lines[:, :2], axis=1), 1e-12)[:, None]
-    dist = np.abs(lines[:, :2] @ uv_b.T + lines[:, 2:3])  # (Na,Nb) pixels
-    ok = dist <= np.broadcast_to(np.asarray(tol_b, dtype=np.float64), (len(uv_b),))[None, :]
-    if epipole_b is not None:
-        far = np.linalg.norm(uv_b - epipole_b, axis=1) >= np.broadcast_to(np.asarray(min_epipole_px, np.float64), (len(uv_b),))
-        ok &= far[None, :]
-    ia, jb = np.nonzero(ok)
+    # The band test is the bulk of the work (Na x Nb ~ 3M on KITTI keyframes): in float32 and in blocks of rows
+    # that stay in cache, ~3x faster than one float64 (Na,Nb) matrix. A pair within ~1e-4 px of the band's edge may
+    # fall the other way than in float64 (the same input still gives the same pairs).
+    n_rows, la, lc = _EPI_BLOCK, lines[:, :2].astype(np.float32), lines[:, 2:3].astype(np.float32)
+    ub, tb = np.ascontiguousarray(uv_b[cols].T, dtype=np.float32), tol[cols].astype(np.float32)[None, :]
+    ias, jcs = [], []
+    for s in range(0, len(la), n_rows):
+        dist = la[s:s + n_rows] @ ub  # (rows,Nc) pixels from each line
+        dist += lc[s:s + n_rows]
+        np.abs(dist, out=dist)
+        i, j = np.nonzero(dist <= tb)  # sorted by i, then j
+        ias.append(i + s)
+        jcs.append(j)
+    ia, jb = np.concatenate(ias), cols[np.concatenate(jcs)]
     if len(ia) == 0:
         return empty
+    if desc_a.dtype == np.uint8:
+        return _best_sorted(ia, jb, _hamming_pairs(desc_a, desc_b, ia, jb), len(uv_b), max_dist, ratio)
     return best_pairs(ia, jb, descriptor_rows(desc_a[ia], desc_b[jb]).astype(np.float64), max_dist, ratio)
+
+
+def _hamming_pairs(desc_a: np.ndarray, desc_b: np.ndarray, ia: np.ndarray, jb: np.ndarray) -> np.ndarray:
+    """Hamming distances (M,) int64 of desc_a[ia] and desc_b[jb]: 64-bit words and a hardware popcount where the
+    descriptors allow it (numpy >= 2.0, width a multiple of 8 bytes), else the byte table."""
+    if hasattr(np, "bitwise_count") and desc_a.shape[1] % 8 == 0:
+        a64 = np.ascontiguousarray(desc_a).view(np.uint64)
+        b64 = np.ascontiguousarray(desc_b).view(np.uint64)
+        return np.bitwise_count(a64[ia] ^ b64[jb]).sum(axis=1, dtype=np.int64)
+    return hamming_rows(desc_a[ia], desc_b[jb]).astype(np.int64)
+
+
+def _best_sorted(qi: np.ndarray, ti: np.ndarray, dist: np.ndarray, n_targets: int, max_dist: float,
+                 ratio: float | None) -> np.ndarray:
+    """``best_pairs`` for integer distances and candidates grouped by query (qi ascending): the best and second
+    best per query by a minimum over each group (no sort), same pairs as ``best_pairs``."""
+    key = dist * n_targets + ti  # unique within a query: (distance, target) order as best_pairs' lexsort
+    starts = np.flatnonzero(np.r_[True, qi[1:] != qi[:-1]])
+    best = np.minimum.reduceat(key, starts)
+    best_d, best_t = np.divmod(best, n_targets)
+    ok = best_d <= max_dist
+    if ratio is not None:
+        big = np.iinfo(np.int64).max
+        rest = np.where(key == np.repeat(best, np.diff(np.r_[starts, len(key)])), big, key)
+        second = np.minimum.reduceat(rest, starts)
+        sec_d = np.where(second != big, second // n_targets, np.inf)
+        ok &= best_d < ratio * sec_d
+    return _one_per_target(qi[starts][ok], best_t[ok], best_d[ok].astype(np.float64))
