@@ -320,10 +320,15 @@ def test_bench_check_exits_1_on_a_miss_and_0_when_every_miss_is_open(tmp_path, c
             "ab": {"ate_a": [0.012, 0.012], "ate_b": [0.011, 0.011], "mean_ratio": 0.92}}
     _sidecar(tmp_path, rows)
     args = ["bench", "--check", "--suite", str(suite), "--output", str(tmp_path / "B.md")]
+    assert main(args) == 1  # "later" is checked but was never measured: a lost or renamed row fails
+    out = capsys.readouterr().out
+    assert "Not measured:\n  later: ate_rmse (not in BENCHMARKS.json)" in out and "Targets missed" not in out
+    assert "1 checked rows have no measurement in BENCHMARKS.json" in out
+    rows["later"] = {"skipped": "needs a GPU"}  # a job that was skipped may stay unmeasured
+    _sidecar(tmp_path, rows)
     assert main(args) == 0  # variant's 30 ms/frame misses, but its check is open
     out = capsys.readouterr().out
     assert "Known misses (open):\n  variant: ms_per_frame 30.0 vs target ≤ 20.0 (ms/frame ≤ 20); open: issue 41" in out
-    assert "Not measured:\n  later: ate_rmse (not in BENCHMARKS.json)" in out and "Targets missed" not in out
     assert "7 checks on 4 rows: 5 pass, 0 missed, 1 known misses, 1 not measured" in out
     rows["variant"] = _run(0.0115)  # 1.15x ref: a regression
     rows["ab"]["mean_ratio"] = 1.0

@@ -250,7 +250,8 @@ def evaluate_check(row: str, c: Check, entries: dict[str, dict[str, Any]]) -> Ou
     ref_row = c.of or row
     ref = result_of(ref_row) if c.value is None else None
     if c.value is None and (ref is None or "skipped" in ref):
-        return Outcome(row, c, None, None, "unmeasured", f"{ref_row} not measured")
+        why = f"{ref_row} not in BENCHMARKS.json" if ref is None else f"{ref_row} not measured ({ref['skipped']})"
+        return Outcome(row, c, None, None, "unmeasured", why)
     if "error" in r:
         return Outcome(row, c, None, None, "known" if c.open else "miss", f"failed: {r['error']}")
     bound: float | None
@@ -334,7 +335,13 @@ def check_report(rows: list[Any], entries: dict[str, dict[str, Any]]) -> tuple[l
     n_rows = len({o.row for o in outcomes})
     lines.append(f"{len(outcomes)} checks on {n_rows} rows: {len(by['pass']) + len(by['fixed'])} pass, "
                  f"{len(by['miss'])} missed, {len(by['known'])} known misses, {len(by['unmeasured'])} not measured")
-    return lines, 1 if by["miss"] else 0
+    # a row the suite checks but the sidecar lacks (never measured, renamed, a lost sidecar) fails like a miss:
+    # only a row whose job was skipped (e.g. no GPU) may stay unmeasured
+    absent = [o for o in by["unmeasured"] if o.why.endswith("not in BENCHMARKS.json")]
+    if absent:
+        lines.append(f"{len({o.row for o in absent})} checked rows have no measurement in BENCHMARKS.json "
+                     "(run `vslam bench --only ROW`)")
+    return lines, 1 if by["miss"] or absent else 0
 
 
 def _headline_value(row: Any, result: dict[str, Any], outcomes: list[Outcome]) -> str:

@@ -412,3 +412,18 @@ def test_local_ba_wrong_pose_link_is_bounded_by_the_observations():
     for k in (2, 3, 4):
         assert S.pose_error(r.poses[k], poses[k])[0] < 5e-4
     assert abs(S.pose_error(r.poses[5], poses[5])[0] - 0.3) < 0.01  # the link is all keyframe 5 has
+
+
+def test_local_ba_pose_links_alone_still_place_their_keyframes():
+    """No multi-view observation at all, only links: the linked keyframe is still placed by them (the early
+    returns for observation-free windows do not drop the links)."""
+    from vslam.mapping.map import PoseLink
+
+    T0 = make_T(np.eye(3), np.zeros(3))
+    T1 = make_T(so3_exp(np.array([0.0, 0.1, 0.0])), np.array([0.3, 0.0, 0.1]))
+    cov = np.eye(6) * 1e-6
+    empty = np.zeros(0, np.int64)
+    p = BAProblem({0: T0, 1: T1 @ make_T(np.eye(3), np.array([0.05, 0.0, 0.0]))}, {0}, {}, empty, empty,
+                  np.zeros((0, 2)), np.zeros(0), links=[PoseLink(0, 1, inv_T(T0) @ T1, cov)])
+    r = local_bundle_adjustment(p, S.CAM)
+    np.testing.assert_allclose(r.poses[1], T1, atol=1e-6)

@@ -68,3 +68,19 @@ def test_interpolate_poses_follows_a_turn_across_a_long_gap():
     np.testing.assert_allclose(out[~known, :3, :3], T[~known, :3, :3], atol=1e-9)  # constant rate: slerp exact
     lin, _ = interpolate_poses(t, T, known, tangent_window=0.0)  # no tangent: the chord
     assert np.linalg.norm(lin[~known, :3, 3] - T[~known, :3, 3], axis=1).max() > 0.1
+
+
+def test_adjoint_moves_a_perturbation_across_the_pose():
+    """T Exp(x) T^-1 = Exp(adjoint(T) x), in (rotation, translation) order as GTSAM's Pose3.AdjointMap."""
+    from scipy.linalg import expm
+
+    from vslam.geometry.se3 import adjoint, inv_T, make_T, skew, so3_exp
+
+    def hat(x):
+        H = np.zeros((4, 4))
+        H[:3, :3], H[:3, 3] = skew(x[:3]), x[3:]
+        return H
+
+    T = make_T(so3_exp(np.array([0.3, -0.2, 0.5])), np.array([1.0, 2.0, -0.5]))
+    x = np.array([0.01, -0.02, 0.03, 0.1, 0.2, -0.3])
+    np.testing.assert_allclose(T @ expm(hat(x)) @ inv_T(T), expm(hat(adjoint(T) @ x)), atol=1e-12)

@@ -236,3 +236,13 @@ def test_stereo_inertial_blackout_past_the_bridge_starts_a_new_map(tmp_path):
     assert rows[-1]["map_id"] == "1" and rows[-1]["imu"] == "used"
     for e in res.map_evals.values():  # measured 0.025 (with the predicted frames) and 0.003 m
         assert e.ate.translation.rmse < 0.035
+
+
+def test_yaw_only_keeps_the_turn_about_gravity_and_the_keyframe_centre():
+    yaw, tilt = _rot_z(30.0), np.array([[1, 0, 0], [0, np.cos(0.02), -np.sin(0.02)], [0, np.sin(0.02), np.cos(0.02)]])
+    T_old_new = make_T(yaw @ tilt, np.array([1.0, -2.0, 0.5]))
+    T_new = make_T(_rot_z(-70.0), np.array([0.3, 0.4, 1.2]))
+    T = Atlas.yaw_only(T_old_new, T_new)
+    np.testing.assert_allclose(T[:3, :3], yaw, atol=1e-3)  # the 1.1 degree roll is gone, the 30 degree yaw kept
+    np.testing.assert_allclose(T[:3, :3] @ T_new[:3, 3] + T[:3, 3], (T_old_new @ T_new)[:3, 3], atol=1e-12)
+    np.testing.assert_allclose(Atlas.yaw_only(make_T(yaw, [1, 2, 3]), T_new), make_T(yaw, [1, 2, 3]), atol=1e-12)

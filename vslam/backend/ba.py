@@ -223,18 +223,19 @@ def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: Backe
     t0 = time.perf_counter()
     win = dense_window(problem, camera, cfg)
     valid = np.isfinite(win.chi2(win.Twc0, win.P0, camera))  # screen: NaN anywhere or behind the camera
+    links = [ln for ln in problem.links or () if ln.a != ln.b and ln.a in problem.poses and ln.b in problem.poses]
     result = BAResult(
         poses={k: win.Twc0[i].copy() for i, k in enumerate(win.kf_ids.tolist()) if k not in problem.fixed},
         points={j: win.P0[i].copy() for i, j in enumerate(win.pt_ids.tolist())},
         inliers=np.zeros(win.kf.shape[0], dtype=bool),
     )
-    if not valid.any():
+    if not valid.any() and not links:
         result.ms = {"build": 0.0, "optimize": 0.0, "classify": 0.0, "total": 1e3 * (time.perf_counter() - t0)}
         return result
 
     closed = _single_view(win, valid, cfg.closed_form_min_tied)
     idx = np.flatnonzero(valid & ~closed)
-    if idx.size == 0:  # only single-view points: nothing constrains a pose
+    if idx.size == 0 and not links:  # only single-view points: nothing constrains a pose
         P = _backprojected(win, closed, win.Twc0, win.P0, camera)
         for i in win.ip[closed].tolist():
             result.points[int(win.pt_ids[i])] = P[i]
@@ -242,7 +243,6 @@ def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: Backe
         result.ms = {"build": 0.0, "optimize": 0.0, "classify": 0.0, "total": 1e3 * (time.perf_counter() - t0)}
         return result
     used_k, used_p = np.unique(win.ik[idx]), np.unique(win.ip[idx])  # sorted, like GTSAM's key order
-    links = [ln for ln in problem.links or () if ln.a != ln.b and ln.a in problem.poses and ln.b in problem.poses]
     linked = {k for ln in links for k in (ln.a, ln.b)}
     used_k = np.union1d(used_k, np.searchsorted(win.kf_ids, sorted(linked))).astype(np.int64)
     if cfg.solver == "numpy" and problem.lines is None and not links and len(used_k) <= NUMPY_MAX_POSES:

@@ -46,7 +46,7 @@ from vslam.backend.ba import BackendConfig, BAProblem, BAResult, StereoCamera, _
 from vslam.backend.line_ba import camera_K_L, factors_within, line_chi2, line_estimates, line_terms
 from vslam.backend.window import dense_window
 from vslam.data.types import ImuSamples
-from vslam.geometry.se3 import inv_T
+from vslam.geometry.se3 import adjoint, inv_T
 
 
 @dataclass(frozen=True)
@@ -150,7 +150,9 @@ def visual_inertial_bundle_adjustment(problem: BAProblem, chain: ImuChain, camer
     builder = fx.FactorBuilder(camera, cfg.huber_k, T_body_cam=T_bc)
     facs = builder.factors(win.kf[idx], win.pt[idx], win.meas[idx], win.stereo[idx], win.sigma[idx])
     chain_ids = [int(k) for k in chain.kf_ids]
-    used_kf = sorted(set(win.kf_ids[np.unique(win.ik[idx])].tolist()) | set(chain_ids))
+    links = [ln for ln in problem.links or () if ln.a != ln.b and ln.a in problem.poses and ln.b in problem.poses]
+    used_kf = sorted(set(win.kf_ids[np.unique(win.ik[idx])].tolist()) | set(chain_ids)
+                     | {k for ln in links for k in (ln.a, ln.b)})
     used_pt = sorted(set(win.pt_ids[np.unique(win.ip[idx])].tolist()))
     held = [k for k in used_kf if k in problem.fixed] or used_kf[:1]
     values = gtsam.Values()
@@ -159,6 +161,8 @@ def visual_inertial_bundle_adjustment(problem: BAProblem, chain: ImuChain, camer
     for j in used_pt:
         values.insert(L(j), np.asarray(problem.points[j], dtype=np.float64))
     other: list = [builder.hold(X(k), problem.poses[k] @ T_cb) for k in held]
+    Ad_bc = adjoint(T_bc)  # a camera-frame link on body poses: T_b1_b2 = T_bc T_c1_c2 T_cb, its error turned by Ad(T_bc)
+    other += [builder.between(ln.a, ln.b, T_bc @ ln.T_a_b @ T_cb, Ad_bc @ ln.cov @ Ad_bc.T) for ln in links]
     for i, k in enumerate(chain_ids):
         values.insert(V(k), np.asarray(chain.velocity[i], dtype=np.float64))
         values.insert(B(k), bias_object(chain.bias[i]))

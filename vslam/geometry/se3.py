@@ -58,6 +58,16 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """(6,6) adjoint of T in (rotation, translation) order, as GTSAM's ``Pose3.AdjointMap``: T Exp(x) = Exp(Ad x) T.
+    Compounding A B with right perturbations of both, A's error reaches the product through adjoint(B^-1)."""
+    R = np.asarray(T, dtype=np.float64)[:3, :3]
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3] = Ad[3:, 3:] = R
+    Ad[3:, :3] = skew(np.asarray(T, dtype=np.float64)[:3, 3]) @ R
+    return Ad
+
+
 def so3_exp(w: np.ndarray) -> np.ndarray:
     """(..., 3) rotation vectors (radians) -> (..., 3, 3) rotations."""
     return Rotation.from_rotvec(np.asarray(w, dtype=np.float64)).as_matrix()
@@ -121,18 +131,5 @@ def interpolate_poses(t: np.ndarray, T: np.ndarray, known: np.ndarray, group: np
         else:
             h00, h10, h01, h11 = 2 * w**3 - 3 * w**2 + 1, w**3 - 2 * w**2 + w, -2 * w**3 + 3 * w**2, w**3 - w**2
             out[i, :3, 3] = h00 * pa + h10 * dt * va + h01 * pb + h11 * dt * vb
-        done[i] = True
-    return out, done
-    for i in np.flatnonzero(~known):
-        k = np.searchsorted(idx, i)
-        if k == 0 or k == len(idx):
-            continue
-        a, b = idx[k - 1], idx[k]
-        if not group[a] == group[b] == group[i]:
-            continue
-        w = (t[i] - t[a]) / (t[b] - t[a])
-        rot = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([T[a, :3, :3], T[b, :3, :3]])))([w]).as_matrix()[0]
-        out[i, :3, :3] = rot
-        out[i, :3, 3] = (1 - w) * T[a, :3, 3] + w * T[b, :3, 3]
         done[i] = True
     return out, done

@@ -128,6 +128,22 @@ class Atlas:
         return T
 
     @staticmethod
+    def yaw_only(T_old_new: np.ndarray, T_new: np.ndarray) -> np.ndarray:
+        """``T_old_new`` with its rotation reduced to the turn about the world's z (gravity) axis, its translation
+        refitted so the keyframe's centre (``T_new``'s) still lands where it did: two maps that both hang from an
+        IMU's gravity differ by yaw and translation only (ORB-SLAM3's inertial merge), and a roll or pitch
+        taken from one keyframe's visual pose would tilt the merged map against the gravity its IMU factors
+        assume."""
+        R = T_old_new[:3, :3]
+        yaw = np.arctan2(R[1, 0] - R[0, 1], R[0, 0] + R[1, 1])  # the z rotation nearest R (least squares)
+        c, s = np.cos(yaw), np.sin(yaw)
+        T = np.eye(4)
+        T[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        centre_old = T_old_new[:3, :3] @ T_new[:3, 3] + T_old_new[:3, 3]
+        T[:3, 3] = centre_old - T[:3, :3] @ T_new[:3, 3]
+        return T
+
+    @staticmethod
     def scale(old: Map, new: Map, kf, res: TrackResult, min_points: int = 20) -> float | None:
         """Monocular: length in the old map per length in the new one -- the median ratio of the depths, in the
         keyframe's camera, of the same keypoints' two points (the old map's at the located pose, the new map's

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vslam.data.types import PinholeCamera
-from vslam.geometry.se3 import inv_T, make_T, so3_exp
+from vslam.geometry.se3 import adjoint, inv_T, make_T, so3_exp
 
 log = logging.getLogger(__name__)
 
@@ -276,7 +276,7 @@ class DenseOdometry:
         if chain is not None:
             floor = np.r_[np.full(3, np.radians(self.cfg.link_sigma_deg)), np.full(3, self.cfg.link_sigma_m)] ** 2
             k, T_kf_ref, C = chain
-            Ad = _adjoint(inv_T(res.T_ref_cam))
+            Ad = adjoint(inv_T(res.T_ref_cam))
             self.last_link = (k, T_kf_ref @ res.T_ref_cam, Ad @ C @ Ad.T + res.cov + np.diag(floor))
         if res.fitness < self.cfg.keyframe_fitness:
             self.set_reference(None, res.T_world_cam, frame.depth)
@@ -316,17 +316,6 @@ def _constraint(J: np.ndarray, q: np.ndarray) -> float:
     L = float(np.mean(np.linalg.norm(q, axis=1)))
     Jn = J / np.array([L, L, L, 1.0, 1.0, 1.0])
     return float(np.linalg.eigvalsh(Jn.T @ Jn / len(J))[0])
-
-
-def _adjoint(T: np.ndarray) -> np.ndarray:
-    """(6,6) adjoint of T in (rotation, translation) order: T Exp(x) = Exp(Ad x) T. Compounding A B with right
-    perturbations of both: the error of A moves through Ad(B^-1)."""
-    R, t = T[:3, :3], T[:3, 3]
-    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    Ad = np.zeros((6, 6))
-    Ad[:3, :3] = Ad[3:, 3:] = R
-    Ad[3:, :3] = tx @ R
-    return Ad
 
 
 def _rigid(T: np.ndarray) -> np.ndarray:

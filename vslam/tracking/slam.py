@@ -655,6 +655,8 @@ class SlamTracker:
                 return
             scale = s
         T_old_new = atlas.old_from_new(kf.T_world_cam, res.T_world_cam, scale)
+        if self.vio is not None and self.vio.ready:  # both maps in the IMU's gravity-aligned frame
+            T_old_new = atlas.yaw_only(T_old_new, kf.T_world_cam)
         old, old_db = atlas.take(old_id)
         new, new_id = self.map, self.map_id
         if scale != 1.0:  # the frames' poses relative to their keyframes, and the motion model, take the old unit
