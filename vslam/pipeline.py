@@ -336,17 +336,24 @@ class Pipeline:
         progress: Callable[[int, int], None] | None = None,
     ) -> RunResult:
         cfg = self.config
-        seq = sequence if sequence is not None else open_dataset(cfg.dataset)
-        seq = select_frames(seq, cfg.dataset.stride, cfg.dataset.drop)
-        out = Path(out_dir or cfg.output.dir)
-        prepare_run_dir(out, keep=(cfg.slam.load_map,))
+        # a sequence the run opens it also closes (video capture, bag reader, camera); one the caller passes in
+        # stays open: the caller owns it (``with seq:`` or ``seq.close()``)
+        opened = open_dataset(cfg.dataset) if sequence is None else None
         try:
-            with getattr(seq, "stop_on_interrupt", contextlib.nullcontext)():  # live: Ctrl-C ends the stream
-                return self._run(seq, out, progress)
-        except OSError as e:  # an output that cannot be written: which one, and what the folder holds
-            if e.errno not in OUTPUT_ERRNOS:
-                raise
-            raise OutputError(describe_failure(out, e)) from None
+            seq = select_frames(opened if opened is not None else sequence,  # type: ignore[arg-type]
+                                cfg.dataset.stride, cfg.dataset.drop)
+            out = Path(out_dir or cfg.output.dir)
+            prepare_run_dir(out, keep=(cfg.slam.load_map,))
+            try:
+                with getattr(seq, "stop_on_interrupt", contextlib.nullcontext)():  # live: Ctrl-C ends the stream
+                    return self._run(seq, out, progress)
+            except OSError as e:  # an output that cannot be written: which one, and what the folder holds
+                if e.errno not in OUTPUT_ERRNOS:
+                    raise
+                raise OutputError(describe_failure(out, e)) from None
+        finally:
+            if opened is not None:
+                opened.close()
 
     def _run(self, seq: Sequence, out: Path, progress: Callable[[int, int], None] | None) -> RunResult:
         cfg = self.config

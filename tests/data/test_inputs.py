@@ -15,6 +15,8 @@ from vslam.cli import main
 from vslam.data.camera_file import read_camera_file
 from vslam.data.images import ImageFolderSequence, parse_time
 from vslam.data.registry import detect_kind, open_sequence
+from vslam.data import video as video_module
+from vslam.data.select import select_frames
 from vslam.data.video import VideoSequence
 from vslam.errors import DatasetError
 
@@ -129,6 +131,90 @@ def test_orbslam2_settings_and_their_errors(tmp_path: Path) -> None:
         read_camera_file(f)
 
 
+ORB3_STEREO = """%YAML:1.0
+File.version: "1.0"
+Camera.type: "PinHole"
+Camera1.fx: 458.654
+Camera1.fy: 457.296
+Camera1.cx: 367.215
+Camera1.cy: 248.375
+Camera1.k1: -0.28340811
+Camera1.k2: 0.07395907
+Camera1.p1: 0.00019359
+Camera1.p2: 1.76187114e-05
+Camera2.fx: 457.587
+Camera2.fy: 456.134
+Camera2.cx: 379.999
+Camera2.cy: 255.238
+Camera2.k1: -0.28368365
+Camera2.k2: 0.07451284
+Camera2.p1: -0.00010473
+Camera2.p2: -3.55590700e-05
+Camera.width: 752
+Camera.height: 480
+Stereo.T_c1_c2: !!opencv-matrix
+   rows: 4
+   cols: 4
+   dt: f
+   data: [0.999997256477797, -0.002317135723275, -0.000343393120620, 0.110074137800478,
+          0.002312067192432, 0.999898048507103, -0.014090668452683, -0.000156612054392,
+          0.000376008102320, 0.014089835846691, 0.999900662638081, 0.000889382785432,
+          0, 0, 0, 1.000000000000000]
+IMU.T_b_c1: !!opencv-matrix
+   rows: 4
+   cols: 4
+   dt: f
+   data: [1.0, 0.0, 0.0, -0.02, 0.0, 1.0, 0.0, 0.06, 0.0, 0.0, 1.0, 0.01, 0.0, 0.0, 0.0, 1.0]
+"""
+
+
+def test_orbslam3_stereo_right_camera_from_camera2(tmp_path: Path) -> None:
+    f = tmp_path / "EuRoC_stereo.yaml"
+    f.write_text(ORB3_STEREO)
+    cal = read_camera_file(f).calibration(752, 480, "stereo")
+    c0, c1 = cal.cam0, cal.cam1
+    assert c1 is not None and (c0.fx, c0.cx) == (458.654, 367.215)
+    assert (c1.width, c1.height, c1.fx, c1.fy, c1.cx, c1.cy) == (752, 480, 457.587, 456.134, 379.999, 255.238)
+    assert c1.distortion_model == "radtan" and c1.distortion == pytest.approx(
+        (-0.28368365, 0.07451284, -0.00010473, -3.55590700e-05))
+    assert c0.distortion[0] == pytest.approx(-0.28340811)  # each camera its own distortion
+    # Stereo.T_c1_c2 maps camera-2 points into camera 1: it is T_cam0_cam1 (right camera at +x of the left)
+    T = cal.T_cam0_cam1
+    assert T is not None and T[:3, 3] == pytest.approx([0.110074137800478, -0.000156612054392, 0.000889382785432],
+                                                        abs=1e-6)
+    assert T[1, 2] == pytest.approx(-0.014090668452683, abs=1e-6) and cal.baseline == pytest.approx(0.1101, abs=1e-4)
+    assert cal.T_body_cam1 == pytest.approx(cal.T_body_cam0 @ T) and cal.T_body_cam0[0, 3] == pytest.approx(-0.02)
+    mono = read_camera_file(f).calibration(752, 480, "mono")
+    assert mono.cam1 is None and mono.T_body_cam1 is None
+    # without Camera2.* the right camera is the left one (a rectified pair)
+    f.write_text(ORB3)
+    cal = read_camera_file(f).calibration(752, 480, "stereo")
+    assert cal.cam1 == cal.cam0
+    # Camera2 given in part
+    f.write_text(ORB3_STEREO.replace("Camera2.cy: 255.238\n", ""))
+    with pytest.raises(DatasetError, match=r"missing key 'Camera2.cy'"):
+        read_camera_file(f)
+
+
+@pytest.mark.parametrize("text, match", [
+    ("%YAML:1.0\nCamera.fx: [1, 2\nCamera.fy: 3\n",
+     r"bad.yaml(:\d+)?: not a readable OpenCV FileStorage YAML \(ORB-SLAM3 settings\) file"),
+    ("%YAML:1.0\nCamera.fx: 1.0\nCamera.fy: 1.0\nCamera.cx: 1.0\nCamera.cy: 1.0\nDepthMapFactor: 0.0\n",
+     r"bad.yaml:6: 'DepthMapFactor' must be a positive number, got 0.0"),
+    ("%YAML:1.0\nCamera.fx: 1.0\nCamera.fy: 1.0\nCamera.cx: 1.0\nCamera.cy: 1.0\nCamera.width: -640\n",
+     r"bad.yaml:6: 'Camera.width' must be a positive number, got -640"),
+    ("%YAML:1.0\nCamera.fx: 1.0\nCamera.fy: 1.0\nCamera.cx: 1.0\nCamera.cy: 1.0\nCamera.height: 480.5\n",
+     r"bad.yaml:6: 'Camera.height' must be a positive integer \(pixels\), got 480.5"),
+    ("%YAML:1.0\nCamera.fx: 1.0\nCamera.fy: 1.0\nCamera.cx: 1.0\nCamera.cy: 1.0\nCamera.width: 0\n",
+     r"bad.yaml:6: 'Camera.width' must be a positive number, got 0"),
+])
+def test_orbslam3_settings_malformed_is_one_line(tmp_path: Path, text: str, match: str) -> None:
+    (tmp_path / "bad.yaml").write_text(text)
+    with pytest.raises(DatasetError, match=match) as e:
+        read_camera_file(tmp_path / "bad.yaml")
+    assert "\n" not in str(e.value)
+
+
 # ------------------------------------------------------------------------------ image folders
 
 
@@ -218,6 +304,47 @@ def test_video_frames_times_and_pickle(tmp_path: Path) -> None:
     assert VideoSequence(video, fps=10.0).timestamps()[1] == pytest.approx(0.1)
 
 
+def test_video_stride_reads_forward_the_same_pixels_and_close(tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    imgs = [np.random.default_rng(i).integers(0, 255, (H, W, 3), dtype=np.uint8) for i in range(10)]
+    video = write_video(tmp_path / "clip.avi", imgs, fps=25.0)
+    (tmp_path / "camera.yaml").write_text(CAMERA)
+    every = [f.image for f in VideoSequence(video)]
+    seeks: list[float] = []
+    caps: list[cv2.VideoCapture] = []
+
+    class Spy:  # the capture, with its seeks counted
+        def __init__(self, cap: cv2.VideoCapture):
+            self.cap = cap
+            caps.append(cap)
+
+        def set(self, prop: int, value: float) -> bool:
+            if prop == cv2.CAP_PROP_POS_FRAMES:
+                seeks.append(value)
+            return self.cap.set(prop, value)
+
+        def __getattr__(self, name: str):
+            return getattr(self.cap, name)
+
+    real_open = video_module._open
+    monkeypatch.setattr(video_module, "_open", lambda path: Spy(real_open(path)))
+    seq = VideoSequence(video)
+    strided = list(select_frames(seq, stride=3, drop=((4, 5),)))
+    assert [f.index for f in strided] == [0, 3, 6, 9]
+    assert all(np.array_equal(f.image, every[f.index]) for f in strided) and seeks == []  # forward: no seek
+    assert np.array_equal(seq._load(7).image, every[7]) and seeks == []  # the last frame closed it: reopened
+    assert np.array_equal(seq._load(2).image, every[2]) and seeks == [2]  # backwards: a seek
+    # close() releases the capture after 2 frames; the next frame opens it again
+    with VideoSequence(video) as seq:
+        it = iter(seq)
+        next(it), next(it)
+        cap = seq._cap
+        assert cap is not None and cap.isOpened()
+    assert seq._cap is None and not cap.isOpened()
+    assert np.array_equal(next(it).image, every[2])  # reopened, read forward to frame 2
+    seq.close()
+
+
 def test_video_errors(tmp_path: Path) -> None:
     bad = tmp_path / "broken.mp4"
     bad.write_bytes(b"not a video at all")
@@ -268,3 +395,39 @@ def test_bag_topics_imu_and_camera_info(ros: int, tmp_path: Path) -> None:
         open_sequence(bag, sensor="rgbd")
     with pytest.raises(DatasetError, match=r"no topic '/nope' \(dataset.topics.image\)"):
         open_sequence(bag, sensor="mono", topics={"image": "/nope"})
+
+
+def test_bag_undecodable_first_image_names_the_topic(tmp_path: Path) -> None:
+    pytest.importorskip("rosbags", reason="the optional 'bags' extra (rosbags) is not installed")
+    cv2.imwrite(str(tmp_path / "d.png"), np.full((H, W), 1000, np.uint16))
+    # the depth helper writes its raw pixels under the encoding asked for: here one vslam does not decode
+    bag = write_bag(tmp_path / "b.bag", 1, [], [(10.0, tmp_path / "d.png")], depth_encoding="yuv422",
+                    camera_info=False)
+    with pytest.raises(DatasetError, match=r"b.bag: topic /camera/depth/image, first image: image encoding "
+                                           r"'yuv422' not supported \(expected one of rgb8"):
+        open_sequence(bag, sensor="mono", topics={"image": "/camera/depth/image"})
+
+
+def test_camera_info_without_calibration_or_with_an_unmodelled_distortion(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from vslam.data.bag import camera_from_info
+
+    K = [535.4, 0, 320.1, 0, 539.2, 247.6, 0, 0, 1]
+
+    def info(k, d, model="plumb_bob"):
+        return SimpleNamespace(k=k, d=d, distortion_model=model, width=640, height=480)
+
+    bag, topic = tmp_path / "b.bag", "/camera/rgb/camera_info"
+    cam = camera_from_info(info(K, [0.1, -0.2, 0.0, 0.0, 0.01]), bag, topic)
+    assert (cam.fx, cam.distortion_model, cam.distortion) == (535.4, "radtan", (0.1, -0.2, 0.0, 0.0, 0.01))
+    with pytest.raises(DatasetError, match=r"b.bag: /camera/rgb/camera_info: camera_info has no calibration "
+                                           r"\(K has fx=0, fy=0: an uncalibrated driver\); .* --camera"):
+        camera_from_info(info([0.0] * 9, [0.0] * 5), bag, topic)
+    with pytest.raises(DatasetError, match=r"/camera/rgb/camera_info: camera_info rational_polynomial distortion "
+                                           r"with 8 coefficients \(k4..k6 not zero\) not supported.* --camera"):
+        camera_from_info(info(K, [0.1, -0.2, 0.0, 0.0, 0.01, 0.3, 0.1, 0.02], "rational_polynomial"), bag, topic)
+    cam = camera_from_info(info(K, [0.1, -0.2, 0.0, 0.0, 0.01, 0.0, 0.0, 0.0], "rational_polynomial"), bag, topic)
+    assert cam.distortion == (0.1, -0.2, 0.0, 0.0, 0.01)  # k4..k6 zero: the radtan model says the same
+    with pytest.raises(DatasetError, match=r"distortion model 'fisheye62' not supported"):
+        camera_from_info(info(K, [0.1] * 8, "fisheye62"), bag, topic)

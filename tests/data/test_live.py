@@ -178,3 +178,44 @@ def test_live_config_errors(clip: tuple[Path, list[np.ndarray]], tmp_path: Path)
                                      "output": {"dir": str(tmp_path / "o")}})
     with pytest.raises(ConfigError, match="a live source has none to select"):
         Pipeline(cfg).run()
+
+
+def test_close_releases_the_source_iterated_or_not(clip: tuple[Path, list[np.ndarray]]) -> None:
+    video, imgs = clip
+    seq = LiveSequence(video, config=LiveConfig(queue=2, realtime=False))
+    src = seq._src
+    assert src is not None and src.cap.isOpened()
+    seq.close()  # never iterated: the capture __init__ opened is released, and no grabber thread was started
+    assert seq._src is None and not src.cap.isOpened() and seq._grabber is None
+    seq.close()  # twice is fine
+
+    with LiveSequence(video, config=LiveConfig(queue=2, realtime=True)) as seq:  # closed mid-iteration
+        it = iter(seq)
+        first = next(it)
+        grabber = seq._grabber
+        assert grabber is not None and grabber.is_alive() and np.array_equal(first.image, imgs[0])
+    grabber.join(1.0)
+    assert not grabber.is_alive() and not [t for t in threading.enumerate() if t is grabber]
+    it.close()
+
+
+def test_pipeline_closes_the_sequence_it_opened_only(clip: tuple[Path, list[np.ndarray]], tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    video, _ = clip
+    seen: list[LiveSequence] = []
+
+    def fake_run(self, seq, out, progress):  # the run itself is not what is tested: it fails at once
+        seen.append(seq)
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(Pipeline, "_run", fake_run)
+    cfg = PipelineConfig.load(None, {"dataset": {"kind": "live", "path": str(video), "sensor": "mono"},
+                                     "output": {"dir": str(tmp_path / "o")}})
+    with pytest.raises(RuntimeError, match="stop here"):
+        Pipeline(cfg).run()
+    assert isinstance(seen[0], LiveSequence) and seen[0]._src is None  # opened from the config: closed
+    mine = LiveSequence(video, config=LiveConfig(realtime=False))
+    with pytest.raises(RuntimeError, match="stop here"):
+        Pipeline(cfg).run(mine)
+    assert seen[1] is mine and mine._src is not None and mine._src.cap.isOpened()  # the caller's: left open
+    mine.close()

@@ -76,6 +76,28 @@ def test_unknown_layout_is_a_dataset_error(tmp_path):
         detect_layout(tmp_path)
 
 
+def test_yolo_names_and_label_errors_name_the_file_and_line(tmp_path):
+    root = tmp_path / "yolo"
+    (root / "images" / "val2017").mkdir(parents=True)
+    (root / "labels" / "val2017").mkdir(parents=True)
+    cv2.imwrite(str(root / "images" / "val2017" / "a.jpg"), np.zeros((40, 60, 3), np.uint8))
+    lab = root / "labels" / "val2017" / "a.txt"
+    lab.write_text("0 0.5 0.5 0.2 0.4\n\n2 0.25 0.5 0.1 0.2\n")
+    (root / "names.yaml").write_text("path: .\n")  # no names
+    with pytest.raises(DatasetError, match=r"names.yaml: missing key 'names' \(the class names"):
+        load_yolo_records(root, "val")
+    (root / "names.yaml").write_text("names: [person, bicycle, car]\n")
+    (rec,) = load_yolo_records(root, "val")
+    np.testing.assert_allclose(rec.boxes, [[24, 12, 36, 28], [12, 16, 18, 24]])
+    assert rec.labels.tolist() == [0, 1]
+    lab.write_text("0 0.5 0.5 0.2 0.4\n1 0.5 oops 0.1\n")
+    with pytest.raises(DatasetError, match=r"a.txt:2: a label row is 'class cx cy w h'.*got '1 0.5 oops 0.1'"):
+        load_yolo_records(root, "val")
+    lab.write_text("0.5 0.5 0.5 0.2 0.4\n")
+    with pytest.raises(DatasetError, match=r"a.txt:1: a label row is 'class cx cy w h' \(class an integer id"):
+        load_yolo_records(root, "val")
+
+
 @need_penn
 def test_penn_fudan_counts_split_and_masks():
     every = load_penn_fudan(PENN, "all")

@@ -97,16 +97,30 @@ def decode_image(msg: Any, msgtype: str, where: str) -> np.ndarray:
     return img
 
 
-def camera_from_info(msg: Any) -> PinholeCamera:
-    """sensor_msgs/CameraInfo (ROS 1 ``K``/``D`` or ROS 2 ``k``/``d``) -> PinholeCamera."""
+def camera_from_info(msg: Any, path: Path, topic: str) -> PinholeCamera:
+    """sensor_msgs/CameraInfo (ROS 1 ``K``/``D`` or ROS 2 ``k``/``d``) -> PinholeCamera; DatasetError(path)
+    naming ``topic`` for what it cannot stand for (an uncalibrated K, a distortion model we do not model)."""
     K = np.asarray(getattr(msg, "k", getattr(msg, "K", None)), np.float64).reshape(3, 3)
     D = tuple(float(x) for x in np.asarray(getattr(msg, "d", getattr(msg, "D", ())), np.float64))
+    hint = "give the intrinsics in a camera file with --camera (docs/inputs.md)"
+    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
+        raise DatasetError(path, f"{topic}: camera_info has no calibration (K has fx={K[0, 0]:g}, fy={K[1, 1]:g}: "
+                                 f"an uncalibrated driver); {hint}")
     model = {"plumb_bob": "radtan", "rational_polynomial": "radtan", "equidistant": "equidistant"}.get(
         msg.distortion_model, "none")
     if not any(D):
         model, D = "none", ()
+    elif model == "none":
+        raise DatasetError(path, f"{topic}: camera_info distortion model {msg.distortion_model!r} not supported "
+                                 f"(plumb_bob, rational_polynomial with k4..k6 zero, equidistant); {hint}")
+    elif model == "radtan" and any(D[5:]):  # rational_polynomial's k4 k5 k6 (and s1..s4, tx ty): not modelled
+        raise DatasetError(path, f"{topic}: camera_info {msg.distortion_model} distortion with {len(D)} coefficients "
+                                 f"(k4..k6 not zero) not supported: radtan takes k1 k2 p1 p2 k3; {hint}")
+    elif (model == "radtan" and len(D) < 4) or (model == "equidistant" and len(D) != 4):
+        raise DatasetError(path, f"{topic}: camera_info {msg.distortion_model} distortion with {len(D)} "
+                                 f"coefficients; {hint}")
     elif model == "radtan":
-        D = D[:5]
+        D = D[:5]  # what is cut is zeros
     return PinholeCamera(int(msg.width), int(msg.height), K[0, 0], K[1, 1], K[0, 2], K[1, 2], model, D)  # type: ignore[arg-type]
 
 
@@ -190,7 +204,11 @@ class BagSequence(Sequence):
                                               "pair has the same stamp)")
         self._imu = self._read_imu(reader)
         cf = self._camera_file(camera)
-        first = self._decode("image", 0, reader)
+        try:
+            first = self._decode("image", 0, reader)
+        except ValueError as e:  # "<bag>:<topic>: image encoding ... not supported" / "... does not decode"
+            raise DatasetError(self.path, f"topic {image}, first image: "
+                                          f"{str(e).removeprefix(f'{self.path}:{image}: ')}") from None
         if cf is None:
             cam = self._camera_info(reader, image)
             self.calibration = Calibration(cam0=cam, depth_scale=ROS_DEPTH_SCALE if self.sensor == "rgbd" else None)
@@ -214,7 +232,7 @@ class BagSequence(Sequence):
         topic = self.topics.camera_info or image.rsplit("/", 1)[0] + "/camera_info"
         conns = [c for c in reader.connections if c.topic == topic]
         for conn, _, raw in reader.messages(connections=conns):
-            return camera_from_info(reader.deserialize(raw, conn.msgtype))
+            return camera_from_info(reader.deserialize(raw, conn.msgtype), self.path, topic)
         raise DatasetError(self.path, f"no camera file (--camera or camera.yaml beside the bag) and no {topic} "
                                       "messages to take the intrinsics from")
 
@@ -257,6 +275,12 @@ class BagSequence(Sequence):
     def imu(self) -> ImuSamples | None:
         return self._imu
 
+    def close(self) -> None:
+        """Close the open bag reader (the next frame asked for opens it again)."""
+        if self._reader is not None:
+            self._reader.close()
+            self._reader = None
+
     def _load(self, i: int) -> Frame | None:
         if self._reader is None:
             self._reader = _any_reader(self.path)
@@ -276,8 +300,7 @@ class BagSequence(Sequence):
             logger.warning("%s; frame %d skipped", e, i)
             return None
         if i + 1 == len(self._t):
-            self._reader.close()
-            self._reader = None
+            self.close()
         imu = self._imu.between(self._t[i - 1] if i else -np.inf, self._t[i]) if self._imu is not None else None
         return Frame(index=i, timestamp=float(self._t[i]), image=image, depth=depth, right=right, imu=imu)
 

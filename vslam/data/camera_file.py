@@ -20,9 +20,12 @@ Our format (every key but fx fy cx cy optional; paths relative to the file)::
     imu: {gyro_noise_density: ..., gyro_random_walk: ..., accel_noise_density: ..., accel_random_walk: ..., rate_hz: ...}
 
 ORB-SLAM3 settings (``%YAML:1.0`` header, OpenCV FileStorage): ``Camera.fx`` or ``Camera1.fx`` ...,
-``Camera.k1 k2 p1 p2 [k3]`` (``Camera.type: KannalaBrandt8``: k1..k4), ``Camera.width/height``,
+``Camera.k1 k2 p1 p2 [k3]`` (``Camera.type: KannalaBrandt8``: k1..k4; ``Rectified``: none), ``Camera.width/height``,
 ``Camera.fps``, ``DepthMapFactor`` (= depth_scale), ``Stereo.b`` or ``Camera.bf`` (baseline x fx),
 ``Stereo.T_c1_c2``, ``IMU.T_b_c1`` / ``Tbc`` and ``IMU.NoiseGyro/NoiseAcc/GyroWalk/AccWalk/Frequency``.
+A stereo file of the v1.0 format may give the right camera its own intrinsics and distortion (``Camera2.fx``
+..., ``Camera2.k1`` ...): the pair is then unrectified, as EuRoC's, with ``Stereo.T_c1_c2`` (the right camera
+in the left camera's frame: it maps points from camera 2 to camera 1) as ``T_cam0_cam1``.
 Their depth and right folders are ``depth/`` and ``right/`` beside the image folder.
 """
 
@@ -63,6 +66,7 @@ class CameraFile:
     fps: float | None = None
     T_body_cam: np.ndarray | None = None  # (4,4), camera in the IMU (body) frame
     imu: ImuNoise | None = None
+    camera1: PinholeCamera | None = None  # the right camera when the file gives its own intrinsics (Camera2.*)
 
     def calibration(self, width: int, height: int, sensor: str) -> Calibration:
         """The Calibration of a ``sensor`` run; a size the file left open becomes the images' ``width``x``height``."""
@@ -72,9 +76,12 @@ class CameraFile:
         elif (cam.width, cam.height) != (width, height):
             raise DatasetError(self.path, f"camera is {cam.width}x{cam.height} but the images are {width}x{height}; "
                                           "fix width/height (or leave them out to take the images' size)")
+        cam1 = cam  # a rectified pair: the right camera is the left one shifted along x
+        if self.camera1 is not None:
+            cam1 = dataclasses.replace(self.camera1, width=cam.width, height=cam.height)
         T_bc0 = self.T_body_cam if self.T_body_cam is not None else np.eye(4)
         stereo = sensor == "stereo" and self.T_cam0_cam1 is not None
-        return Calibration(cam0=cam, cam1=cam if stereo else None, T_body_cam0=T_bc0,
+        return Calibration(cam0=cam, cam1=cam1 if stereo else None, T_body_cam0=T_bc0,
                            T_body_cam1=T_bc0 @ self.T_cam0_cam1 if stereo else None,
                            imu=self.imu, depth_scale=self.depth_scale if sensor == "rgbd" else None)
 
@@ -189,7 +196,14 @@ class _Settings:
     def __init__(self, path: Path):
         self.path = path
         self.text = path.read_text().splitlines()
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        try:
+            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        except (cv2.error, SystemError) as e:  # a parse error (the SystemError wraps OpenCV's cv2.error)
+            cause = e if isinstance(e, cv2.error) else (e.__cause__ or e.__context__ or e)
+            m = re.search(r"\((\d+)\): ([^'\n]*)", str(cause))  # "... in function '<path>(3): Incorrect indentation'"
+            why, line = (f" ({m.group(2).strip()})", int(m.group(1))) if m else ("", None)
+            raise DatasetError(path, f"not a readable OpenCV FileStorage YAML (ORB-SLAM3 settings) file{why}",
+                               line) from None
         if not fs.isOpened():
             raise DatasetError(path, "not a readable OpenCV FileStorage YAML (ORB-SLAM3 settings) file")
         self.fs = fs
@@ -217,34 +231,51 @@ class _Settings:
         return tuple(float(x) for x in np.asarray(m, np.float64).ravel())
 
 
-def _read_opencv(path: Path) -> CameraFile:
-    s = _Settings(path)
-    pre = "Camera1." if s.has("Camera1.fx") else "Camera."
+def _opencv_camera(s: _Settings, pre: str, cam_type: str, size: dict[str, int]) -> PinholeCamera:
+    """The intrinsics and distortion under ``pre`` (``Camera.``, ``Camera1.`` or ``Camera2.``)."""
+    path = s.path
     k = {}
     for key in ("fx", "fy", "cx", "cy"):
         if not s.has(pre + key):
-            raise DatasetError(path, f"missing key {pre + key!r} (ORB-SLAM3 settings: Camera.fx/fy/cx/cy or Camera1.*)")
+            raise DatasetError(path, f"missing key {pre + key!r} (ORB-SLAM3 settings: Camera.fx/fy/cx/cy, Camera1.* "
+                                     "and, for the right camera, Camera2.*)")
         k[key] = _positive(path, pre + key, s.number(pre + key), s.line(pre + key))
-    size = {key: int(s.number(f"Camera.{key}")) if s.has(f"Camera.{key}") else 0 for key in ("width", "height")}
-    cam_type = s.fs.getNode("Camera.type").string() if s.has("Camera.type") else "PinHole"
     if cam_type == "KannalaBrandt8":
         model, names = "equidistant", ("k1", "k2", "k3", "k4")
-    elif cam_type in ("PinHole", "Pinhole", ""):
-        model, names = "radtan", ("k1", "k2", "p1", "p2") + (("k3",) if s.has(pre + "k3") else ())
+    elif cam_type == "Rectified":  # ORB-SLAM3 v1.0: a rectified pair, no distortion
+        model, names = "none", ()
     else:
-        raise DatasetError(path, f"'Camera.type' {cam_type!r} not supported; expected PinHole or KannalaBrandt8",
-                           s.line("Camera.type"))
+        model, names = "radtan", ("k1", "k2", "p1", "p2") + (("k3",) if s.has(pre + "k3") else ())
     dist = tuple(s.number(pre + n) if s.has(pre + n) else 0.0 for n in names)
     if not any(dist):
         model, dist = "none", ()
-    cam = PinholeCamera(size["width"], size["height"], k["fx"], k["fy"], k["cx"], k["cy"], model, dist)  # type: ignore[arg-type]
+    return PinholeCamera(size["width"], size["height"], k["fx"], k["fy"], k["cx"], k["cy"], model, dist)  # type: ignore[arg-type]
+
+
+def _read_opencv(path: Path) -> CameraFile:
+    s = _Settings(path)
+    pre = "Camera1." if s.has("Camera1.fx") else "Camera."
+    size = {}
+    for key in ("width", "height"):
+        name = f"Camera.{key}"
+        v = _positive(path, name, s.number(name), s.line(name)) if s.has(name) else 0.0
+        if v != int(v):
+            raise DatasetError(path, f"{name!r} must be a positive integer (pixels), got {v:g}", s.line(name))
+        size[key] = int(v)
+    cam_type = s.fs.getNode("Camera.type").string() if s.has("Camera.type") else "PinHole"
+    if cam_type not in ("PinHole", "Pinhole", "", "KannalaBrandt8", "Rectified"):
+        raise DatasetError(path, f"'Camera.type' {cam_type!r} not supported; expected PinHole, KannalaBrandt8 or "
+                                 "Rectified", s.line("Camera.type"))
+    cam = _opencv_camera(s, pre, cam_type, size)
+    cam1 = _opencv_camera(s, "Camera2.", cam_type, size) if any(
+        s.has(f"Camera2.{key}") for key in ("fx", "fy", "cx", "cy")) else None
     T01 = None
     if s.has("Stereo.T_c1_c2"):
         T01 = _rigid(path, "Stereo.T_c1_c2", s.matrix("Stereo.T_c1_c2"), s.line("Stereo.T_c1_c2"))
     elif s.has("Stereo.b"):
         T01 = _baseline_T(_positive(path, "Stereo.b", s.number("Stereo.b"), s.line("Stereo.b")))
     elif s.has("Camera.bf"):
-        T01 = _baseline_T(_positive(path, "Camera.bf", s.number("Camera.bf"), s.line("Camera.bf")) / k["fx"])
+        T01 = _baseline_T(_positive(path, "Camera.bf", s.number("Camera.bf"), s.line("Camera.bf")) / cam.fx)
     T_bc = None
     for key in ("IMU.T_b_c1", "Tbc"):
         if s.has(key):
@@ -255,6 +286,7 @@ def _read_opencv(path: Path) -> CameraFile:
         keys = {"gyro_noise_density": "IMU.NoiseGyro", "accel_noise_density": "IMU.NoiseAcc",
                 "gyro_random_walk": "IMU.GyroWalk", "accel_random_walk": "IMU.AccWalk", "rate_hz": "IMU.Frequency"}
         imu = ImuNoise(**{f: _positive(path, key, s.number(key), s.line(key)) for f, key in keys.items() if s.has(key)})
-    depth_scale = s.number("DepthMapFactor") if s.has("DepthMapFactor") else None
+    depth_scale = _positive(path, "DepthMapFactor", s.number("DepthMapFactor"), s.line("DepthMapFactor")) \
+        if s.has("DepthMapFactor") else None
     fps = s.number("Camera.fps") if s.has("Camera.fps") else None
-    return CameraFile(path, cam, None, None, depth_scale, None, T01, fps, T_bc, imu)
+    return CameraFile(path, cam, None, None, depth_scale, None, T01, fps, T_bc, imu, cam1)

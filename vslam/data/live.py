@@ -348,6 +348,8 @@ class LiveSequence(Sequence):
         self._stop = threading.Event()
         self._times: list[float] = []
         self.dropped = 0  # frames the queue dropped over the last iteration
+        self._grabber: threading.Thread | None = None  # the running iteration's grabber thread
+        self._done: threading.Event | None = None  # set: that grabber stops after the read in progress
 
     def _default_camera(self) -> Path | None:
         if self.kind == "realsense":
@@ -373,6 +375,20 @@ class LiveSequence(Sequence):
     def timestamps(self) -> np.ndarray:
         """(N,) float64 seconds of the frames delivered so far."""
         return np.asarray(self._times, np.float64)
+
+    def close(self) -> None:
+        """Stop the grabber thread of an iteration in progress and release the device, stream or file, also
+        when the sequence was never iterated (its source is opened by ``__init__``). Iterating again opens the
+        source again. (From another thread during an iteration: the consumer then gets the frames already
+        queued, then the end of the stream.)"""
+        if self._done is not None:
+            self._done.set()
+        grabber = self._grabber
+        if grabber is not None and grabber is not threading.current_thread():
+            grabber.join(timeout=self.config.timeout + 1.0)  # it releases its source on the way out
+        src, self._src = self._src, None
+        if src is not None:
+            src.release()
 
     def stop(self) -> None:
         """End the iteration: the frame being delivered is the last one (thread-safe; a signal handler's)."""
@@ -426,6 +442,7 @@ class LiveSequence(Sequence):
         self._times = []
         done = threading.Event()
         grabber = threading.Thread(target=self._grab, args=(src, q, done), name="vslam-live-grab", daemon=True)
+        self._grabber, self._done = grabber, done
         grabber.start()
         try:
             while True:
@@ -437,6 +454,8 @@ class LiveSequence(Sequence):
         finally:
             done.set()
             grabber.join(timeout=self.config.timeout + 1.0)  # a read in progress ends within the source's timeout
+            if self._grabber is grabber:
+                self._grabber = self._done = None
             self.dropped = q.dropped
             if q.dropped:
                 logger.info("%s: %d frames dropped by the live queue (%d delivered)", self.source, q.dropped,

@@ -51,6 +51,9 @@ class Subsequence(Sequence):
         get = getattr(self.base, "imu", None)
         return get() if callable(get) else None
 
+    def close(self) -> None:
+        self.base.close()
+
     def _base_frame(self, i: int) -> Frame | None:
         # readers with ``_load`` warn and return None for a frame that does not decode; the synthetic one renders
         if type(self.base)._load is not Sequence._load:

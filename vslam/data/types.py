@@ -208,5 +208,16 @@ class Sequence(abc.ABC):
         """All IMU samples of the sequence, or None."""
         return None
 
+    def close(self) -> None:
+        """Release what the reader holds open (a video capture, a bag reader, a camera). Safe to call twice;
+        the default holds nothing. Iterating again after ``close`` reopens what it needs (a live camera: the
+        device again)."""
+
+    def __enter__(self) -> "Sequence":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
 
 from vslam.data.trajectory import Trajectory  # noqa: E402  (re-exported for type hints)

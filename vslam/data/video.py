@@ -86,6 +86,12 @@ class VideoSequence(Sequence):
         state["_cap"], state["_next"] = None, 0
         return state
 
+    def close(self) -> None:
+        """Release the open capture (the next frame asked for opens it again)."""
+        if self._cap is not None:
+            self._cap.release()
+            self._cap, self._next = None, 0
+
     def __len__(self) -> int:
         return len(self._t)
 
@@ -95,8 +101,12 @@ class VideoSequence(Sequence):
     def _load(self, i: int) -> Frame | None:
         if self._cap is None:
             self._cap, self._next = _open(self.path), 0
-        if i != self._next:  # random access (stride, drop): seek; frame-exact for intra-only codecs
+        if i < self._next:  # backwards: seek (frame-exact for intra-only codecs; FFmpeg seeks to a keyframe)
             self._cap.set(cv2.CAP_PROP_POS_FRAMES, i)
+        else:  # forwards (stride, drop): demux and decode the frames between, exact for every codec
+            for _ in range(i - self._next):
+                if not self._cap.grab():
+                    break
         ok, image = self._cap.read()
         self._next = i + 1
         if not ok or image is None:
@@ -108,8 +118,7 @@ class VideoSequence(Sequence):
                            image.shape[1], image.shape[0], cam.width, cam.height)
             return None
         if i + 1 == len(self._t):
-            self._cap.release()
-            self._cap = None
+            self.close()
         return Frame(index=i, timestamp=float(self._t[i]), image=image)
 
 

@@ -128,8 +128,32 @@ def _yolo_names(root: Path) -> list[str]:
     path = root / "names.yaml"
     if not path.is_file():
         raise DatasetError(path, "missing (a YOLO dataset needs names.yaml)")
-    names = yaml.safe_load(path.read_text())["names"]
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise DatasetError(path, f"not valid YAML ({str(e).splitlines()[0]})") from None
+    names = data.get("names") if isinstance(data, dict) else None
+    if not isinstance(names, (dict, list)) or not names:
+        raise DatasetError(path, "missing key 'names' (the class names: a list, or a mapping of class id to name)")
     return [names[i] for i in sorted(names)] if isinstance(names, dict) else list(names)
+
+
+def _yolo_labels(path: Path) -> np.ndarray:
+    """(N, 5) rows ``class cx cy w h`` of a YOLO label file; DatasetError naming the file and line of a bad row."""
+    rows = []
+    for ln, text in enumerate(path.read_text().splitlines(), 1):
+        if not text.strip():
+            continue
+        parts = text.split()
+        try:
+            row = [float(x) for x in parts]
+        except ValueError:
+            row = []
+        if len(row) != 5 or not all(np.isfinite(row)) or row[0] != int(row[0]) or row[0] < 0:
+            raise DatasetError(path, f"a label row is 'class cx cy w h' (class an integer id, the box normalised), "
+                                     f"got {text.strip()!r}", ln)
+        rows.append(row)
+    return np.asarray(rows, np.float64).reshape(-1, 5)
 
 
 def load_yolo_records(root: str | Path, split: Split, classes: tuple[str, ...] = EVAL_CLASSES) -> list[Record]:
@@ -149,7 +173,7 @@ def load_yolo_records(root: str | Path, split: Split, classes: tuple[str, ...] =
         elif not _in_split(img.stem, split):
             continue
         lab = (root / "labels" / sub / img.stem).with_suffix(".txt")
-        rows = np.loadtxt(lab, ndmin=2) if lab.is_file() and lab.stat().st_size else np.zeros((0, 5))
+        rows = _yolo_labels(lab) if lab.is_file() else np.zeros((0, 5))
         rows = rows[[ours.get(int(c)) is not None for c in rows[:, 0]]] if len(rows) else rows
         h, w = _image_size(img)
         cx, cy, bw, bh = rows[:, 1] * w, rows[:, 2] * h, rows[:, 3] * w, rows[:, 4] * h
