@@ -116,6 +116,10 @@ def _job_run(config: str | None, overrides: dict[str, Any], out_dir: str) -> dic
         row["maps"] = {str(m): {"frames": int(np.sum(ids == m)), "ate_rmse": e.ate.translation.rmse}
                        for m, e in sorted(res.map_evals.items())}
     row.update(stage_times(Path(out_dir) / "stats.csv"))
+    # issue 41, long runs: does a frame cost more once the map is large? Medians of the first and last 500 frames
+    totals = [float(r["ms_total"]) for r in res.stats if r.get("ms_total") not in (None, "")]
+    if len(totals) >= 1000:
+        row["ms_first500"], row["ms_last500"] = float(np.median(totals[:500])), float(np.median(totals[-500:]))
     row["peak_rss_mb"] = peak_rss_mb()
     return row
 
