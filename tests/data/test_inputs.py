@@ -74,7 +74,8 @@ def test_missing_camera_file(tmp_path: Path) -> None:
         ImageFolderSequence(tmp_path / "imgs")
 
 
-ORB3 = """%YAML:1.0
+# the left camera of ORB-SLAM3's EuRoC settings, shared by the mono and stereo files below
+_ORB3_CAMERA1 = """%YAML:1.0
 File.version: "1.0"
 Camera.type: "PinHole"
 Camera1.fx: 458.654
@@ -85,7 +86,9 @@ Camera1.k1: -0.28340811
 Camera1.k2: 0.07395907
 Camera1.p1: 0.00019359
 Camera1.p2: 1.76187114e-05
-Camera.width: 752
+"""
+
+ORB3 = _ORB3_CAMERA1 + """Camera.width: 752
 Camera.height: 480
 Camera.fps: 20
 Stereo.b: 0.0745
@@ -131,18 +134,7 @@ def test_orbslam2_settings_and_their_errors(tmp_path: Path) -> None:
         read_camera_file(f)
 
 
-ORB3_STEREO = """%YAML:1.0
-File.version: "1.0"
-Camera.type: "PinHole"
-Camera1.fx: 458.654
-Camera1.fy: 457.296
-Camera1.cx: 367.215
-Camera1.cy: 248.375
-Camera1.k1: -0.28340811
-Camera1.k2: 0.07395907
-Camera1.p1: 0.00019359
-Camera1.p2: 1.76187114e-05
-Camera2.fx: 457.587
+ORB3_STEREO = _ORB3_CAMERA1 + """Camera2.fx: 457.587
 Camera2.fy: 456.134
 Camera2.cx: 379.999
 Camera2.cy: 255.238

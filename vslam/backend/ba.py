@@ -201,6 +201,10 @@ class BAProblem(_CompactPoints):
     # robust BetweenFactorPose3 in both LM rounds; a keyframe they name is optimised even with no observation
     links: list | None = None
 
+    def usable_links(self) -> list:
+        """The ``links`` between two different keyframes of ``poses`` (others cannot enter this window's graph)."""
+        return [ln for ln in self.links or () if ln.a != ln.b and ln.a in self.poses and ln.b in self.poses]
+
 
 @dataclass
 class BAResult(_CompactPoints):
@@ -223,7 +227,7 @@ def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: Backe
     t0 = time.perf_counter()
     win = dense_window(problem, camera, cfg)
     valid = np.isfinite(win.chi2(win.Twc0, win.P0, camera))  # screen: NaN anywhere or behind the camera
-    links = [ln for ln in problem.links or () if ln.a != ln.b and ln.a in problem.poses and ln.b in problem.poses]
+    links = problem.usable_links()
     result = BAResult(
         poses={k: win.Twc0[i].copy() for i, k in enumerate(win.kf_ids.tolist()) if k not in problem.fixed},
         points={j: win.P0[i].copy() for i, j in enumerate(win.pt_ids.tolist())},

@@ -150,7 +150,7 @@ def visual_inertial_bundle_adjustment(problem: BAProblem, chain: ImuChain, camer
     builder = fx.FactorBuilder(camera, cfg.huber_k, T_body_cam=T_bc)
     facs = builder.factors(win.kf[idx], win.pt[idx], win.meas[idx], win.stereo[idx], win.sigma[idx])
     chain_ids = [int(k) for k in chain.kf_ids]
-    links = [ln for ln in problem.links or () if ln.a != ln.b and ln.a in problem.poses and ln.b in problem.poses]
+    links = problem.usable_links()
     used_kf = sorted(set(win.kf_ids[np.unique(win.ik[idx])].tolist()) | set(chain_ids)
                      | {k for ln in links for k in (ln.a, ln.b)})
     used_pt = sorted(set(win.pt_ids[np.unique(win.ip[idx])].tolist()))

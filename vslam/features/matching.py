@@ -126,15 +126,10 @@ def _best_pairs_binary(valid: np.ndarray, ki: np.ndarray, pt_desc: np.ndarray, k
     distances by 64-bit popcount, and each row's best / second best from one partition of the key
     distance * (N+1) + target (integer distances, so ties still break by target index)."""
     n = len(kp_desc)
-    a = np.ascontiguousarray(pt_desc).view(np.uint64)
-    b = np.ascontiguousarray(kp_desc).view(np.uint64)
     big = np.iinfo(np.int64).max
     pi, ci = np.nonzero(valid)  # distances of the candidates within the radius only (~20 % at 4 px)
     kv = ki[pi, ci].astype(np.int64)
-    cnt = np.bitwise_count(a[pi] ^ b[kv]).astype(np.int64)
-    dist = cnt[:, 0]
-    for col in range(1, cnt.shape[1]):  # a few columns: faster than a reduction over a short axis
-        dist = dist + cnt[:, col]
+    dist = _hamming_pairs(pt_desc, kp_desc, pi, kv)
     key = np.full(valid.shape, big, np.int64)
     key[pi, ci] = dist * (n + 1) + kv
     two = np.partition(key, 1, axis=1)[:, :2] if key.shape[1] > 1 else np.concatenate([key, np.full_like(key, big)], axis=1)
@@ -241,7 +236,11 @@ def _hamming_pairs(desc_a: np.ndarray, desc_b: np.ndarray, ia: np.ndarray, jb: n
     if hasattr(np, "bitwise_count") and desc_a.shape[1] % 8 == 0:
         a64 = np.ascontiguousarray(desc_a).view(np.uint64)
         b64 = np.ascontiguousarray(desc_b).view(np.uint64)
-        return np.bitwise_count(a64[ia] ^ b64[jb]).sum(axis=1, dtype=np.int64)
+        cnt = np.bitwise_count(a64[ia] ^ b64[jb]).astype(np.int64)
+        dist = cnt[:, 0]
+        for col in range(1, cnt.shape[1]):  # a few columns: faster than a reduction over a short axis
+            dist = dist + cnt[:, col]
+        return dist
     return hamming_rows(desc_a[ia], desc_b[jb]).astype(np.int64)
 
 
