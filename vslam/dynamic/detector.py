@@ -13,8 +13,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+import torch.nn.functional as F
 
-from vslam.dynamic.model import DetectorConfig, YoloDetector, decode, fuse_for_inference
+from vslam.dynamic.model import DetectorConfig, YoloDetector, decode, fuse_for_inference, mask_outputs
 from vslam.errors import ConfigError
 from vslam.dynamic.nms import batched_nms
 from vslam.resources import shipped_model
@@ -23,12 +24,14 @@ from vslam.resources import shipped_model
 @dataclass
 class Detections:
     """boxes: (K,4) float x1,y1,x2,y2 pixels of the input image; scores: (K,); class_ids: (K,) int;
-    class_names: (K,) str."""
+    class_names: (K,) str; masks: (K,H,W) bool instance masks in the input image's pixels, or None where the
+    network has no mask head (then a box is all there is to mask)."""
 
     boxes: np.ndarray
     scores: np.ndarray
     class_ids: np.ndarray
     class_names: np.ndarray
+    masks: np.ndarray | None = None
 
 
 def letterbox(image: np.ndarray, size: int) -> tuple[np.ndarray, float, tuple[int, int]]:
@@ -52,19 +55,40 @@ def to_tensor(images_rgb: list[np.ndarray], device: torch.device | None = None) 
 
 @torch.no_grad()
 def postprocess(boxes: torch.Tensor, probs: torch.Tensor, conf: float, iou: float, max_det: int = 100,
-                max_candidates: int = 3000) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
-    """Per image: (K,4) boxes, (K,) scores, (K,) classes after score threshold and class-aware NMS."""
+                max_candidates: int = 3000, extra: torch.Tensor | None = None) -> list[tuple[torch.Tensor, ...]]:
+    """Per image: (K,4) boxes, (K,) scores, (K,) classes after score threshold and class-aware NMS; with
+    ``extra`` (B, A, E) per-anchor values (mask coefficients) also the kept anchors' (K, E)."""
     out = []
-    for b, p in zip(boxes, probs):
+    for i, (b, p) in enumerate(zip(boxes, probs)):
         score, cls = p.max(-1)
-        keep = score > conf
+        keep = torch.nonzero(score > conf).squeeze(1)
         b, score, cls = b[keep], score[keep], cls[keep]
         if len(score) > max_candidates:
             top = score.topk(max_candidates).indices
-            b, score, cls = b[top], score[top], cls[top]
+            b, score, cls, keep = b[top], score[top], cls[top], keep[top]
         k = batched_nms(b, score, cls, iou)[:max_det]
-        out.append((b[k], score[k], cls[k]))
+        out.append((b[k], score[k], cls[k]) if extra is None else (b[k], score[k], cls[k], extra[i, keep[k]]))
     return out
+
+
+@torch.no_grad()
+def instance_masks(coef: torch.Tensor, proto: torch.Tensor, boxes: torch.Tensor, pad: tuple[int, int], r: float,
+                   shape: tuple[int, int]) -> np.ndarray:
+    """Kept detections' masks in the original image: coef (K, nm), proto (nm, h, w) of the letterboxed input,
+    boxes (K, 4) letterbox pixels, ``pad``/``r`` the letterbox's, ``shape`` (H, W) -> (K, H, W) bool, cut at 0.5
+    probability after bilinear resizing to the letterbox, then its unpadded window to the image."""
+    from vslam.dynamic.model import assemble_masks
+
+    H, W = shape
+    if len(coef) == 0:
+        return np.zeros((0, H, W), bool)
+    logits = assemble_masks(coef, proto, boxes)[None].float()
+    h, w = logits.shape[2:]
+    full = F.interpolate(logits, size=(4 * h, 4 * w), mode="bilinear", align_corners=False)  # letterbox pixels
+    px, py = pad
+    window = full[..., py:py + round(H * r), px:px + round(W * r)]
+    up = F.interpolate(window, size=(H, W), mode="bilinear", align_corners=False)[0]
+    return (up > 0).cpu().numpy()
 
 
 class Detector:
@@ -81,14 +105,22 @@ class Detector:
     def detect(self, image: np.ndarray) -> Detections:
         rgb = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB if image.ndim == 2 else cv2.COLOR_BGR2RGB)
         im, r, (px, py) = letterbox(rgb, self.img_size)
+        masks = None
         with torch.inference_mode():
-            boxes, probs = decode(self.model, self.model(to_tensor([im], self.device)))
-            b, s, c = (t.cpu() for t in postprocess(boxes, probs, self.conf, self.iou)[0])
-        b = b.numpy().astype(np.float64)
+            feats = self.model(to_tensor([im], self.device))
+            boxes, probs = decode(self.model, feats)
+            if self.model.cfg.masks:
+                coef, proto = mask_outputs(self.model, feats)
+                bt, s, c, k = postprocess(boxes, probs, self.conf, self.iou, extra=coef)[0]
+                masks = instance_masks(k, proto[0], bt, (px, py), r, image.shape[:2])
+            else:
+                bt, s, c = postprocess(boxes, probs, self.conf, self.iou)[0]
+        b = bt.cpu().numpy().astype(np.float64)
         b[:, [0, 2]] = (b[:, [0, 2]] - px) / r
         b[:, [1, 3]] = (b[:, [1, 3]] - py) / r
-        ids = c.numpy().astype(np.int64)
-        return Detections(b, s.numpy().astype(np.float64), ids, np.array([self.names[i] for i in ids], dtype=object))
+        ids = c.cpu().numpy().astype(np.int64)
+        return Detections(b, s.cpu().numpy().astype(np.float64), ids, np.array([self.names[i] for i in ids], dtype=object),
+                          masks)
 
 
 def save_checkpoint(path: str | Path, model: YoloDetector, names: list[str], half: bool = False, **extra: object) -> Path:

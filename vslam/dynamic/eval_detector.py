@@ -2,10 +2,12 @@
 about. Person and vehicle AP50 / AP50-95 (COCO-style, ``metrics``), recall and precision at the score threshold
 SLAM masks with, and where the folder has instance masks (Penn-Fudan) the mask IoU of what SLAM masks.
 
-A box detector masks its boxes, so its "mask" is the filled box: ``mask_iou`` is the IoU of a matched detection's
-box (IoU >= 0.5, score >= the threshold) with the instance's true mask, the baseline a mask head must beat;
+A detector with a mask head masks its instance masks; a box detector masks its boxes, so its "mask" is the filled
+box. ``mask_iou`` is the IoU of a matched detection's mask (box IoU >= 0.5, score >= the threshold) with the
+instance's true mask; ``box_mask_iou`` the same for the detection's filled box (the baseline a mask head must beat);
 ``gt_box_mask_iou`` is the same for the annotated box (the best any box can do); ``image_mask_iou`` compares the
-union of the detected boxes with the union of the true masks per image (pixels SLAM drops vs pixels it should).
+union of what the detections mask with the union of the true masks per image (pixels SLAM drops vs pixels it
+should).
 
 Detections are mapped to ``EVAL_CLASSES`` by name (``datasets.class_index``): the shipped detector's ``car`` and
 FastestDet's COCO car / bus / truck / motorcycle are all ``vehicle``; other classes are dropped.
@@ -36,11 +38,12 @@ class BoxDetector(Protocol):
 @dataclass(frozen=True)
 class Prediction:
     """One image's detections in eval classes: boxes (K,4) x1,y1,x2,y2 pixels, scores (K,), classes (K,) int into
-    ``EVAL_CLASSES``."""
+    ``EVAL_CLASSES``, masks (K,H,W) bool or None (no mask head)."""
 
     boxes: np.ndarray
     scores: np.ndarray
     classes: np.ndarray
+    masks: np.ndarray | None = None
 
 
 def predict(det: BoxDetector, records: list[Record], progress: Any = None) -> list[Prediction]:
@@ -50,8 +53,9 @@ def predict(det: BoxDetector, records: list[Record], progress: Any = None) -> li
         d = det.detect(rec.image())
         cls = np.array([class_index(str(name), EVAL_CLASSES) for name in d.class_names], dtype=object)
         keep = np.array([c is not None for c in cls], bool)
+        masks = getattr(d, "masks", None)
         out.append(Prediction(np.asarray(d.boxes, np.float64)[keep].reshape(-1, 4), np.asarray(d.scores, np.float64)[keep],
-                              cls[keep].astype(np.int64)))
+                              cls[keep].astype(np.int64), None if masks is None else masks[keep]))
         if progress is not None:
             progress(n + 1, len(records))
     return out
@@ -97,8 +101,9 @@ def evaluate(records: list[Record], preds: list[Prediction], threshold: float) -
 
 
 def mask_report(records: list[Record], preds: list[Prediction], threshold: float) -> dict[str, Any]:
-    """Mask IoUs of the boxes with instance masks ({} when none has any), class by class."""
+    """Mask IoUs of the detections with instance masks ({} when none has any), class by class."""
     inst: dict[int, list[float]] = {}
+    boxed: dict[int, list[float]] = {}
     oracle: dict[int, list[float]] = {}
     image: dict[int, list[float]] = {}
     for rec, p in zip(records, preds):
@@ -110,18 +115,21 @@ def mask_report(records: list[Record], preds: list[Prediction], threshold: float
             gm, gb = masks[has & (rec.labels == c)], rec.boxes[has & (rec.labels == c)]
             sel = (p.classes == c) & (p.scores >= threshold)
             db = p.boxes[sel]
+            dm = [box_mask(b, gm.shape[1:]) for b in db] if p.masks is None else list(p.masks[sel])
             gt, _ = match(db, p.scores[sel], gb, MATCH_IOU)
             for i in np.nonzero(gt >= 0)[0]:
-                inst.setdefault(c, []).append(_iou(box_mask(db[i], gm.shape[1:]), gm[gt[i]]))
+                inst.setdefault(c, []).append(_iou(dm[i], gm[gt[i]]))
+                boxed.setdefault(c, []).append(_iou(box_mask(db[i], gm.shape[1:]), gm[gt[i]]))
             oracle.setdefault(c, []).extend(_iou(box_mask(b, gm.shape[1:]), m) for b, m in zip(gb, gm))
             drop = np.zeros(gm.shape[1:], bool)
-            for b in db:
-                drop |= box_mask(b, drop.shape)
+            for m in dm:
+                drop |= m
             image.setdefault(c, []).append(_iou(drop, gm.any(0)))
     out: dict[str, Any] = {}
     for c, name in enumerate(EVAL_CLASSES):
         if c in oracle:
             out[f"mask_iou/{name}"] = float(np.mean(inst[c])) if inst.get(c) else float("nan")
+            out[f"box_mask_iou/{name}"] = float(np.mean(boxed[c])) if boxed.get(c) else float("nan")
             out[f"n_masks/{name}"] = len(inst.get(c, []))
             out[f"gt_box_mask_iou/{name}"] = float(np.mean(oracle[c]))
             out[f"image_mask_iou/{name}"] = float(np.mean(image[c]))

@@ -6,7 +6,13 @@ branches; boxes are distances to the four sides as a discrete distribution (DFL,
 Loss", NeurIPS 2020). The seed's change is an attention block: here one per neck output (P3, P4, P5), right
 before the head, so the ablation none / SE / CBAM / ESEA changes nothing else.
 
-forward(x: (B,3,H,W) float in [0,1], H and W multiples of 32) -> list of 3 maps (B, 4*reg_max + nc, H/s, W/s).
+Instance masks (``masks`` > 0) follow YOLACT (Bolya et al., ICCV 2019) as YOLOv8-seg does: a prototype branch
+on the finest neck level gives ``masks`` maps at 1/4 of the input, and each anchor predicts as many mixing
+coefficients; an instance's mask is sigmoid(coefficients . prototypes) cropped to its box. The masks cost one
+small branch on top of the detector, so SLAM can mask a walker's pixels instead of its whole box.
+
+forward(x: (B,3,H,W) float in [0,1], H and W multiples of 32) -> list of 3 maps (B, 4*reg_max + nc + masks,
+H/s, W/s), and with a mask head a fourth entry: the prototypes (B, masks, H/4, W/4).
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ class DetectorConfig:
     num_classes: int = 1
     reg_max: int = 16
     width: float | None = None  # overrides the scale's width multiple (tiny test models)
+    masks: int = 0  # prototype masks of the instance-mask head; 0 = boxes only
 
 
 class Conv(nn.Module):
@@ -103,20 +110,41 @@ class DFL(nn.Module):
 
 
 class Head(nn.Module):
-    """Decoupled head: per level a box branch (4*reg_max DFL logits) and a class branch (nc logits)."""
+    """Decoupled head: per level a box branch (4*reg_max DFL logits), a class branch (nc logits) and, with a mask
+    head, a coefficient branch (nm mixing weights of the prototypes)."""
 
-    def __init__(self, nc: int, ch: tuple[int, ...], reg_max: int):
+    def __init__(self, nc: int, ch: tuple[int, ...], reg_max: int, nm: int = 0):
         super().__init__()
-        self.nc, self.reg_max = nc, reg_max
+        self.nc, self.reg_max, self.nm = nc, reg_max, nm
         c2, c3 = max(16, ch[0] // 4, reg_max * 4), max(ch[0], min(nc, 100))
         self.box = nn.ModuleList(nn.Sequential(Conv(c, c2, 3), Conv(c2, c2, 3), nn.Conv2d(c2, 4 * reg_max, 1)) for c in ch)
         self.cls = nn.ModuleList(nn.Sequential(Conv(c, c3, 3), Conv(c3, c3, 3), nn.Conv2d(c3, nc, 1)) for c in ch)
         for b, c, s in zip(self.box, self.cls, STRIDES):  # YOLOv8 bias init: boxes ~1, rare classes at start
             b[-1].bias.data[:] = 1.0
             c[-1].bias.data[:] = math.log(5 / nc / (640 / s) ** 2)
+        if nm:
+            c4 = max(ch[0] // 4, nm)
+            self.coef = nn.ModuleList(nn.Sequential(Conv(c, c4, 3), Conv(c4, c4, 3), nn.Conv2d(c4, nm, 1)) for c in ch)
 
     def forward(self, xs: list[torch.Tensor]) -> list[torch.Tensor]:
-        return [torch.cat([b(x), c(x)], 1) for x, b, c in zip(xs, self.box, self.cls)]
+        if not self.nm:
+            return [torch.cat([b(x), c(x)], 1) for x, b, c in zip(xs, self.box, self.cls)]
+        return [torch.cat([b(x), c(x), m(x)], 1) for x, b, c, m in zip(xs, self.box, self.cls, self.coef)]
+
+
+class Proto(nn.Module):
+    """Prototype masks at 1/4 of the input from the stride-8 neck level (YOLOv8-seg's layout: conv, 2x transposed
+    conv, conv, 1x1 to ``nm`` maps)."""
+
+    def __init__(self, c1: int, c_: int, nm: int):
+        super().__init__()
+        self.cv1 = Conv(c1, c_, 3)
+        self.up = nn.ConvTranspose2d(c_, c_, 2, 2, 0, bias=True)
+        self.cv2 = Conv(c_, c_, 3)
+        self.cv3 = Conv(c_, nm, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.cv3(self.cv2(self.up(self.cv1(x))))
 
 
 class YoloDetector(nn.Module):
@@ -145,7 +173,8 @@ class YoloDetector(nn.Module):
         self.bu4_down, self.bu4 = Conv(c3, c3, 3, 2), C2f(c3 + c4, c4, n(3))
         self.bu5_down, self.bu5 = Conv(c4, c4, 3, 2), C2f(c4 + c5, c5, n(3))
         self.att = nn.ModuleList(make_attention(cfg.attention, c) for c in (c3, c4, c5))
-        self.head = Head(cfg.num_classes, (c3, c4, c5), cfg.reg_max)
+        self.head = Head(cfg.num_classes, (c3, c4, c5), cfg.reg_max, cfg.masks)
+        self.proto = Proto(c3, c3, cfg.masks) if cfg.masks else None
         self.dfl = DFL(cfg.reg_max)
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
@@ -156,7 +185,9 @@ class YoloDetector(nn.Module):
         n3 = self.td3(torch.cat([self.up(t4), p3], 1))
         n4 = self.bu4(torch.cat([self.bu4_down(n3), t4], 1))  # bottom-up
         n5 = self.bu5(torch.cat([self.bu5_down(n4), p5], 1))
-        return self.head([a(f) for a, f in zip(self.att, (n3, n4, n5))])
+        xs = [a(f) for a, f in zip(self.att, (n3, n4, n5))]
+        out = self.head(xs)
+        return out if self.proto is None else [*out, self.proto(xs[0])]
 
 
 def make_anchors(feats: list[torch.Tensor], offset: float = 0.5) -> tuple[torch.Tensor, torch.Tensor]:
@@ -176,12 +207,41 @@ def dist2bbox(dist: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
     return torch.cat([anchors - lt, anchors + rb], -1)
 
 
+def _per_anchor(feats: list[torch.Tensor]) -> torch.Tensor:
+    """The levels' maps (not the prototypes) -> (B, A, channels), levels concatenated."""
+    b = feats[0].shape[0]
+    return torch.cat([f.view(b, f.shape[1], -1) for f in feats[:len(STRIDES)]], 2).permute(0, 2, 1)
+
+
 def split_outputs(model: YoloDetector, feats: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
     """Raw maps -> DFL logits (B, A, 4*reg_max) and class logits (B, A, nc)."""
-    b = feats[0].shape[0]
-    x = torch.cat([f.view(b, f.shape[1], -1) for f in feats], 2).permute(0, 2, 1)
+    x = _per_anchor(feats)
     r4 = 4 * model.cfg.reg_max
-    return x[..., :r4], x[..., r4:]
+    return x[..., :r4], x[..., r4:r4 + model.cfg.num_classes]
+
+
+def mask_outputs(model: YoloDetector, feats: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Raw maps of a model with a mask head -> coefficients (B, A, nm) and prototypes (B, nm, H/4, W/4)."""
+    if not model.cfg.masks or len(feats) <= len(STRIDES):
+        raise ValueError("this detector has no mask head (DetectorConfig.masks = 0)")
+    return _per_anchor(feats)[..., 4 * model.cfg.reg_max + model.cfg.num_classes:], feats[len(STRIDES)]
+
+
+def assemble_masks(coef: torch.Tensor, proto: torch.Tensor, boxes: torch.Tensor, stride: float = 4.0) -> torch.Tensor:
+    """Mask logits of K instances: coef (K, nm), proto (nm, h, w), boxes (K, 4) x1,y1,x2,y2 input pixels ->
+    (K, h, w) logits, set to -inf-like outside each box (YOLACT's crop: a prototype's response elsewhere in the
+    image belongs to other objects)."""
+    k, (nm, h, w) = coef.shape[0], proto.shape
+    logits = (coef @ proto.reshape(nm, -1)).view(k, h, w)
+    return logits.masked_fill(~box_crop(boxes / stride, h, w), -20.0)
+
+
+def box_crop(boxes: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """(K, 4) boxes in the grid's pixels -> (K, h, w) bool, True at cells whose centre lies inside the box."""
+    xs = torch.arange(w, device=boxes.device, dtype=boxes.dtype) + 0.5
+    ys = torch.arange(h, device=boxes.device, dtype=boxes.dtype) + 0.5
+    x1, y1, x2, y2 = (boxes[:, i, None] for i in range(4))
+    return ((ys[None] >= y1) & (ys[None] < y2))[:, :, None] & ((xs[None] >= x1) & (xs[None] < x2))[:, None, :]
 
 
 def decode(model: YoloDetector, feats: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -207,20 +267,32 @@ def fuse_for_inference(model: YoloDetector) -> YoloDetector:
 
 
 @torch.no_grad()
-def recalibrate_bn(model: nn.Module, batches: list[torch.Tensor]) -> None:
+def recalibrate_bn(model: nn.Module, batches: list[torch.Tensor], only: list[nn.Module] | None = None) -> None:
     """Set BatchNorm running statistics to the exact average over ``batches`` (train-mode forward passes).
 
     Short runs (toy mode, tests) leave the running averages near their initial values with YOLO's momentum of
-    0.03, so eval-mode outputs would not match what was trained."""
-    bns = [m for m in model.modules() if isinstance(m, nn.BatchNorm2d)]
+    0.03, so eval-mode outputs would not match what was trained. ``only``: recalibrate the BatchNorms inside
+    these modules and leave the others' statistics as they are (a frozen detector under a new mask head)."""
+    scope = only if only is not None else [model]
+    bns = [m for s in scope for m in s.modules() if isinstance(m, nn.BatchNorm2d)]
     saved = [m.momentum for m in bns]
     was_training = model.training
     for m in bns:
         m.reset_running_stats()
         m.momentum = None  # cumulative average
-    model.train()
+    if only is None:
+        model.train()
+    else:
+        model.eval()
+        for s in scope:
+            s.train()
     for x in batches:
         model(x)
     for m, mom in zip(bns, saved):
         m.momentum = mom
     model.train(was_training)
+
+
+def mask_head_modules(model: YoloDetector) -> list[nn.Module]:
+    """The modules a mask head adds (prototypes, coefficient branches): what trains over a frozen detector."""
+    return [model.proto, model.head.coef] if model.cfg.masks else []

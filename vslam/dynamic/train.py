@@ -38,9 +38,9 @@ import torch
 from vslam import ddp
 from vslam.dynamic.data import Sample, collate, collate_u8, load_yolo, place, synthetic_samples
 from vslam.dynamic.detector import postprocess, save_checkpoint
-from vslam.dynamic.loss import detection_loss
+from vslam.dynamic.loss import LossConfig, MaskTargets, detection_loss
 from vslam.dynamic.metrics import detection_report
-from vslam.dynamic.model import DetectorConfig, YoloDetector, decode, recalibrate_bn
+from vslam.dynamic.model import DetectorConfig, YoloDetector, decode, mask_head_modules, recalibrate_bn
 from vslam.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -87,6 +87,11 @@ class TrainConfig:
     eval_composite_from: int = 100  # ... from this frame on (the frames before are copy-paste backgrounds)
     weights: str = ""  # also write the final model here in float16 (the committed copy under models/)
     init: str = ""  # start from this checkpoint's weights (a further training round) instead of random ones
+    masks: int = 0  # prototypes of the instance-mask head (YOLOv8-seg: 32); 0 = boxes only
+    mask_gain: float = 7.5  # weight of the mask term in the loss
+    # train the mask head alone over the frozen ``init`` detector (its boxes, scores and BatchNorm statistics stay
+    # exactly as they were): a mask head for a trained detector at a fraction of a full run's cost
+    freeze_detector: bool = False
     resume: bool = False
     evaluate: bool = True  # measure the held-out sets at the end (off where their data is not at hand)
     toy: bool = False  # tiny model, tiny images, a few iterations: a smoke test of the whole recipe on CPU
@@ -99,6 +104,11 @@ class TrainConfig:
         for name in ("copy_paste", "paste_closeup", "paste_tilt", "paste_occluded"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"train.{name} is a probability (0-1), got {getattr(self, name)}")
+        if self.masks < 0 or self.mask_gain < 0:
+            raise ConfigError(f"train.masks and train.mask_gain must be >= 0, got {self.masks} and {self.mask_gain}")
+        if self.freeze_detector and not (self.masks and self.init):
+            raise ConfigError("train.freeze_detector trains a mask head over a trained detector: it needs train.masks > 0 "
+                              "and train.init")
 
 
 TOY = dict(img_size=64, batch=4, iterations=20, width=0.125, coco="", synthetic_seeds=(101,), synthetic_val_seeds=(201,),
@@ -309,6 +319,39 @@ def _resume(last: Path, cfg: TrainConfig, model: YoloDetector, opt: torch.optim.
         return int(ck["iteration"])
 
 
+def _load_init(model: YoloDetector, cfg: TrainConfig) -> None:
+    """``model`` from the ``init`` checkpoint. A detector without a mask head may start one with a mask head (the
+    head's new modules keep their random start); anything else must match exactly."""
+    from vslam.dynamic.detector import load_model
+
+    start_model, ck = load_model(cfg.init, "train.init")
+    same = replace(start_model.cfg, masks=model.cfg.masks) == model.cfg and start_model.cfg.masks in (0, model.cfg.masks)
+    if not same or list(ck["names"]) != list(cfg.classes):
+        raise ConfigError(f"{cfg.init}: another architecture or class list than train.{cfg.attention} / {list(cfg.classes)}"
+                          f" (masks {cfg.masks})")
+    missing, unexpected = model.load_state_dict(start_model.state_dict(), strict=False)
+    new = {k for m in mask_head_modules(model) for k in _names_in(model, m)}
+    if unexpected or not set(missing) <= new:
+        raise ConfigError(f"{cfg.init}: weights do not fit the model (missing {sorted(set(missing) - new)[:3]}, "
+                          f"unexpected {unexpected[:3]})")
+
+
+def _names_in(model: torch.nn.Module, sub: torch.nn.Module) -> list[str]:
+    """State-dict keys of ``model`` that belong to its submodule ``sub``."""
+    prefix = next(n for n, m in model.named_modules() if m is sub)
+    return [k for k in model.state_dict() if k.startswith(prefix + ".")]
+
+
+def _train_mode(model: YoloDetector, cfg: TrainConfig) -> None:
+    """Train mode; a frozen detector stays in eval mode (its BatchNorm statistics must not drift)."""
+    if not cfg.freeze_detector:
+        model.train()
+        return
+    model.eval()
+    for m in mask_head_modules(model):
+        m.train()
+
+
 def _lr(cfg: TrainConfig, it: int) -> float:
     if it < cfg.warmup:
         return cfg.lr * (it + 1) / cfg.warmup
@@ -347,16 +390,18 @@ def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)  # weight initialisation
-    model = YoloDetector(DetectorConfig(cfg.scale, cfg.attention, len(cfg.classes), width=cfg.width)).to(dev)
+    model = YoloDetector(DetectorConfig(cfg.scale, cfg.attention, len(cfg.classes), width=cfg.width, masks=cfg.masks)).to(dev)
     if cfg.init:
-        from vslam.dynamic.detector import load_model
-
-        start_model, ck = load_model(cfg.init)
-        if start_model.cfg != model.cfg or list(ck["names"]) != list(cfg.classes):
-            raise ConfigError(f"{cfg.init}: another architecture or class list than train.{cfg.attention} / {list(cfg.classes)}")
-        model.load_state_dict(start_model.state_dict())
+        _load_init(model, cfg)
+    trained = mask_head_modules(model) if cfg.freeze_detector else [model]
+    params = [p for m in trained for p in m.parameters()]
+    if cfg.freeze_detector:
+        for p in model.parameters():
+            p.requires_grad_(False)
+        for p in params:
+            p.requires_grad_(True)
     net = ddp.wrap(model, dev, n_ranks)  # what the forward pass goes through
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
     start = 0
     if cfg.resume and (out / "last.pt").is_file():
         start = _resume(out / "last.pt", cfg, model, opt, dev)
@@ -364,19 +409,19 @@ def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict
     train_set, val_sets = training_data(cfg), held_out_sets(cfg) if cfg.evaluate else {}
     log.info("training samples: %d (+ %d backgrounds x %d people cutouts); held-out: %s", len(train_set.samples),
              len(train_set.backgrounds), len(train_set.cutouts), {k: len(v) for k, v in val_sets.items()})
-    model.train()
+    _train_mode(model, cfg)
     lead = rank == 0  # the one rank that writes
     with open(out / "log.csv", "a") if lead else contextlib.nullcontext() as f:
         if start == 0 and lead:
-            f.write("iteration,lr,loss,box,cls,dfl,seconds\n")
+            f.write("iteration,lr,loss,box,cls,dfl,seconds\n" if not cfg.masks else "iteration,lr,loss,box,cls,dfl,mask,seconds\n")
         t0 = time.perf_counter()
         batches = _batches(train_set, cfg, range(start, cfg.iterations), rank if n_ranks > 1 else None)
         with batches as drawn:
             for it, arrays in zip(range(start, cfg.iterations), drawn):
-                x, gb, gl, gm = _on(arrays, dev)
+                x, gb, gl, gm, *extra = _on(arrays, dev)
                 for g in opt.param_groups:
                     g["lr"] = _lr(cfg, it)
-                loss, parts = detection_loss(model, net(x), gb, gl, gm)
+                loss, parts = detection_loss(model, net(x), gb, gl, gm, LossConfig(mask=cfg.mask_gain), MaskTargets(*extra))
                 opt.zero_grad(set_to_none=True)
                 loss.backward()  # DDP: gradients averaged over the ranks here
                 torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
@@ -384,8 +429,9 @@ def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict
                 if not lead:
                     continue
                 if it % cfg.log_every == 0 or it + 1 == cfg.iterations:
+                    mask = f"{parts['mask']:.5f}," if cfg.masks else ""
                     f.write(f"{it},{_lr(cfg, it):.6g},{float(loss.detach()):.5f},{parts['box']:.5f},{parts['cls']:.5f},"
-                            f"{parts['dfl']:.5f},{time.perf_counter() - t0:.1f}\n")
+                            f"{parts['dfl']:.5f},{mask}{time.perf_counter() - t0:.1f}\n")
                     f.flush()
                     log.info("it %d loss %.4f %s", it, float(loss.detach()), parts)
                 if (it + 1) % cfg.ckpt_every == 0 or it + 1 == cfg.iterations:
@@ -395,7 +441,8 @@ def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict
         ddp.check_in_sync(model)
     if not lead:
         return {}
-    recalibrate_bn(model, [_batch(train_set, cfg, 10_000_000 + k, dev)[0] for k in range(cfg.bn_batches)])
+    recalibrate_bn(model, [_batch(train_set, cfg, 10_000_000 + k, dev)[0] for k in range(cfg.bn_batches)],
+                   only=mask_head_modules(model) if cfg.freeze_detector else None)
     metrics = {name: evaluate(model, data, cfg, dev) for name, data in val_sets.items()}
     save_checkpoint(out / "model.pt", model, list(cfg.classes), img_size=cfg.img_size, metrics=metrics, train=asdict(cfg))
     if cfg.weights:
