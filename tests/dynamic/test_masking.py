@@ -158,9 +158,10 @@ def test_detector_source_masks_only_confident_boxes_of_listed_classes():
     keep = DynamicFilter(cfg, CAM, detector=FakeDetector()).keep(frame, f)
     np.testing.assert_array_equal(keep, ~in_boxes(f.raw, np.array([[2.0, 5.0, 19.0, 29.0]])))
     # detected ahead (the SLAM front end's prefetch thread): the same boxes, and keep() runs no network
-    boxes = DynamicFilter(cfg, CAM, detector=FakeDetector()).detect(frame)
-    np.testing.assert_array_equal(boxes, [[2.0, 5.0, 19.0, 29.0]])
-    np.testing.assert_array_equal(DynamicFilter(cfg, CAM, detector=object()).keep(frame, f, boxes), keep)
+    objects = DynamicFilter(cfg, CAM, detector=FakeDetector()).detect(frame)
+    np.testing.assert_array_equal(objects.boxes, [[2.0, 5.0, 19.0, 29.0]])
+    assert objects.masks == (None,)  # no mask head: the box is masked
+    np.testing.assert_array_equal(DynamicFilter(cfg, CAM, detector=object()).keep(frame, f, objects), keep)
     assert DynamicFilter(DynamicConfig(enabled=True, source="gt_mask"), CAM).detect(frame) is None
 
 

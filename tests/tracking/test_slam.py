@@ -155,7 +155,7 @@ def test_front_end_computed_ahead_gives_the_same_trajectory(tmp_path):
 
 
 def test_detector_run_ahead_on_the_prefetch_thread_gives_the_same_trajectory(tmp_path):
-    """With ``slam.dynamic.source=detector`` the network runs on the prefetch thread (``FrontEnd.boxes``); the
+    """With ``slam.dynamic.source=detector`` the network runs on the prefetch thread (``FrontEnd.objects``); the
     poses must be those of the run that detects on the tracking thread, and the stage is timed on its own."""
     import csv
 

@@ -8,6 +8,7 @@ from typing import Literal
 from vslam.errors import ConfigError
 
 MaskSource = Literal["detector", "gt_mask", "none"]
+MaskShape = Literal["instance", "box"]
 
 
 @dataclass(frozen=True)
@@ -58,12 +59,17 @@ class GeometricConfig:
 class DynamicConfig:
     """``source``: where the masks of dynamic objects come from. ``gt_mask`` uses the synthetic generator's exact
     masks (an oracle that bounds what masking can give); ``detector`` runs the attention detector and masks the
-    boxes of ``classes``; ``none`` masks nothing (geometric check only, when enabled)."""
+    instances (``mask``) or boxes of ``classes``; ``none`` masks nothing (geometric check only, when enabled)."""
 
     enabled: bool = False
     source: MaskSource = "gt_mask"
     classes: tuple[str, ...] = ("person", "bicycle", "car", "motorcycle", "bus", "truck", "chair")
     dilation_px: int = 4  # mask / box growth: keypoints on an object's outline have an ORB patch on it
+    # detector: what a detection masks. "instance": its instance mask (dilated by dilation_px), so the static
+    # pixels its box holds beside the object stay trackable; a detection without a mask (weights without a mask
+    # head, a mask covering less than mask_min_fill of its box) masks its box. "box": always the box.
+    mask: MaskShape = "instance"
+    mask_min_fill: float = 0.2  # an instance mask that covers less of its box is not trusted: the box is masked
     # detector boxes below this score are ignored. The threshold belongs to the weights: set it with them (KITTI's
     # round 4 at 0.2, bench row kitti07-people-mono-detector). 0.15 for the shipped SE model: best mean and worst
     # ATE on the twelve TUM validation composites (docs/dynamic.md).
@@ -107,6 +113,10 @@ class DynamicConfig:
     def __post_init__(self) -> None:
         if self.source not in ("detector", "gt_mask", "none"):
             raise ConfigError(f"slam.dynamic.source must be detector, gt_mask or none, got {self.source!r}")
+        if self.mask not in ("instance", "box"):
+            raise ConfigError(f"slam.dynamic.mask must be instance or box, got {self.mask!r}")
+        if not 0 <= self.mask_min_fill <= 1:
+            raise ConfigError(f"slam.dynamic.mask_min_fill must be in [0, 1], got {self.mask_min_fill}")
         if self.dilation_px < 0:
             raise ConfigError("slam.dynamic.dilation_px must be >= 0")
         if not 0 <= self.box_grow <= 1:

@@ -11,7 +11,7 @@ import numpy as np
 
 from vslam.data.types import Frame, PinholeCamera
 from vslam.dynamic.config import DynamicConfig
-from vslam.dynamic.masking import box_iou, dilate, in_boxes, in_mask
+from vslam.dynamic.masking import Instances, box_iou, crop_mask, dilate, in_boxes, in_mask, paint
 from vslam.dynamic.motion import GeometricCheck
 from vslam.features.base import Features
 from vslam.features.matching import match_by_projection
@@ -22,9 +22,10 @@ _SEGMENT_SAMPLES = 9  # points along a line segment tested like keypoints (``kee
 
 
 class DynamicFilter:
-    """Per frame: ``keep(frame, features)`` before tracking (masks/boxes of dynamic objects and the regions the
-    geometric check flagged in the previous frame), then ``observe(T_world_cam)`` once the pose is tracked
-    (geometric check; returns the kept keypoints that turned out to move, to be left out of mapping).
+    """Per frame: ``keep(frame, features)`` before tracking (masks/boxes of dynamic objects -- a detection's
+    instance mask where it has one, ``mask`` -- and the regions the geometric check flagged in the previous
+    frame), then ``observe(T_world_cam)`` once the pose is tracked (geometric check; returns the kept keypoints
+    that turned out to move, to be left out of mapping).
 
     With ``geometric.keep_static_boxes`` the check also judges each detector box of the frame from its own
     keypoints; boxes of the next frame that overlap one judged static are not masked (DynaSLAM keeps a sitting
@@ -39,20 +40,20 @@ class DynamicFilter:
             from vslam.dynamic.detector import default_weights
 
             self.detector = self._load(cfg.weights or default_weights(), "weights")
-        # ``extra_weights``: detectors whose boxes are unioned with the first one's (``extra``: already loaded)
+        # ``extra_weights``: detectors whose detections are unioned with the first one's (``extra``: already loaded)
         if extra is None:
             extra = [self._load(p, "extra_weights") for p in cfg.extra_weights] if cfg.source == "detector" else []
         self.extra = list(extra)
-        self._recent: deque[tuple[float, np.ndarray]] = deque()  # (timestamp, boxes) of this and recent frames
-        self._boxes = np.zeros((0, 4))  # this frame's detector boxes
+        self._recent: deque[tuple[float, Instances]] = deque()  # (timestamp, detections) of this and recent frames
+        self._objects = Instances.from_boxes(np.zeros((0, 4)))  # this frame's detections
         self._static = np.zeros((0, 4))  # boxes of the last checked frame judged static
         self._movers: list[tuple[float, np.ndarray]] = []  # (time, box) of objects seen moving, followed by overlap
         self._t = 0.0
         self._feats: Features | None = None
         self._depth = np.zeros(0)
         self._kept = np.zeros(0, bool)
-        self._region_mask: np.ndarray | None = None  # this frame's dynamic regions (``dynamic_source``)
-        self._region_boxes = np.zeros((0, 4))
+        self._region_mask: np.ndarray | None = None  # this frame's dynamic regions (``dynamic_source``): pixels,
+        self._region_boxes = np.zeros((0, 4))  # and boxes masked whole
         self._region_grow = 0.0
         self._span: tuple[tuple[int, float], np.ndarray] | None = None  # (frame key, ``_depth_span``)
         self._tracks: list[tuple[float, np.ndarray]] = []  # (time last detected, box now) (``box_track_s``)
@@ -68,24 +69,32 @@ class DynamicFilter:
             det.img_size = self.cfg.img_size
         return det
 
-    def detect(self, frame: Frame) -> np.ndarray | None:
-        """(K,4) boxes of the configured classes at ``score_threshold`` (``source=detector``; None otherwise, and
-        on the frames ``detect_every`` skips).
+    def detect(self, frame: Frame) -> Instances | None:
+        """Detections of the configured classes at ``score_threshold``, each with its instance mask cropped to
+        its box where ``mask=instance`` and the network gave a mask that fills ``mask_min_fill`` of the box
+        (``source=detector``; None otherwise, and on the frames ``detect_every`` skips).
 
         The image and its index alone decide them and nothing here is stateful, so one other thread may run this
         ahead of ``keep`` (the SLAM front end's prefetch thread does: the network then costs tracking nothing)."""
-        if self.cfg.source != "detector" or frame.index % self.cfg.detect_every:
+        c = self.cfg
+        if c.source != "detector" or frame.index % c.detect_every:
             return None
-        boxes = []
+        parts = []
         for network in [self.detector, *self.extra]:
             det = network.detect(frame.image)  # type: ignore[union-attr]
-            sel = (det.scores >= self.cfg.score_threshold) & np.isin(det.class_names, list(self.cfg.classes))
-            boxes.append(det.boxes[sel].reshape(-1, 4))
-        return np.concatenate(boxes)
+            sel = np.flatnonzero((det.scores >= c.score_threshold) & np.isin(det.class_names, list(c.classes)))
+            boxes = det.boxes[sel].reshape(-1, 4)
+            masks = getattr(det, "masks", None)
+            if c.mask == "instance" and masks is not None:
+                crops = tuple(crop_mask(masks[k], b, c.mask_min_fill) for k, b in zip(sel, boxes))
+                parts.append(Instances(boxes, crops))
+            else:
+                parts.append(Instances.from_boxes(boxes))
+        return Instances.concat(parts)
 
-    def dynamic_source(self, frame: Frame, feats: Features, boxes: np.ndarray | None = None) -> np.ndarray:
+    def dynamic_source(self, frame: Frame, feats: Features, objects: Instances | None = None) -> np.ndarray:
         """(N,) bool: keypoints on dynamic objects according to ``cfg.source`` (dilated by ``dilation_px``);
-        ``boxes``: this frame's ``detect`` if computed ahead. Sets this frame's regions (``_on_dynamic``)."""
+        ``objects``: this frame's ``detect`` if computed ahead. Sets this frame's regions (``_on_dynamic``)."""
         c = self.cfg
         self._region_mask, self._region_boxes, self._region_grow = None, np.zeros((0, 4)), 0.0
         if c.source == "gt_mask":
@@ -94,17 +103,22 @@ class DynamicFilter:
             elif frame.boxes is not None:
                 self._region_boxes = np.asarray(frame.boxes, dtype=np.float64).reshape(-1, 4)
         elif c.source == "detector":
-            fresh = self.detect(frame) if boxes is None else boxes
+            fresh = self.detect(frame) if objects is None else objects
             if fresh is not None:  # else a frame between detections: the last detection's boxes hold
-                self._boxes = fresh
+                self._objects = fresh
             self._t = frame.timestamp
-            self._recent.append((frame.timestamp, self._boxes))
+            self._recent.append((frame.timestamp, self._objects))
             while frame.timestamp - self._recent[0][0] > c.box_memory_s + 1e-6:
                 self._recent.popleft()
-            boxes = np.concatenate([b for _, b in self._recent] + [self._follow(feats, frame.timestamp)])
-            if len(self._static) and len(boxes):
-                boxes = boxes[box_iou(boxes, self._static).max(axis=1) < 0.5]
-            self._region_boxes, self._region_grow = boxes, c.box_grow
+            followed = Instances.from_boxes(self._follow(feats, frame.timestamp))
+            objs = Instances.concat([o for _, o in self._recent] + [followed])
+            if len(self._static) and len(objs):  # a static verdict unmasks the instance, box or mask
+                objs = objs.subset(box_iou(objs.boxes, self._static).max(axis=1) < 0.5)
+            whole = np.array([m is None for m in objs.masks], bool)
+            self._region_boxes, self._region_grow = objs.boxes[whole], c.box_grow
+            if not whole.all():  # the memory window's masks, one union
+                shape = frame.image.shape[:2]
+                self._region_mask = dilate(paint([m for m in objs.masks if m is not None], shape), c.dilation_px)
         return self._on_dynamic(feats.raw)
 
     def _follow(self, feats: Features, t: float) -> np.ndarray:
@@ -114,7 +128,7 @@ class DynamicFilter:
         c = self.cfg
         if c.box_track_s <= 0:
             return np.zeros((0, 4))
-        fresh = self._boxes
+        fresh = self._objects.boxes
         out: list[tuple[float, np.ndarray]] = []
         for seen, box in self._tracks:
             if t - seen > c.box_track_s + 1e-6 or (len(fresh) and box_iou(box[None], fresh).max() >= 0.3):
@@ -138,9 +152,10 @@ class DynamicFilter:
 
     def _on_dynamic(self, raw_uv: np.ndarray) -> np.ndarray:
         """(N,) bool: raw pixels inside this frame's dynamic masks or boxes (as set by ``dynamic_source``)."""
+        dyn = in_boxes(raw_uv, self._region_boxes, self.cfg.dilation_px, self._region_grow)
         if self._region_mask is not None:
-            return in_mask(raw_uv, self._region_mask)
-        return in_boxes(raw_uv, self._region_boxes, self.cfg.dilation_px, self._region_grow)
+            dyn |= in_mask(raw_uv, self._region_mask)
+        return dyn
 
     def keep_segments(self, frame: Frame, raw: np.ndarray, ideal: np.ndarray) -> np.ndarray:
         """(L,) bool over line segments (raw and ideal (L,4) end points) of the frame last given to ``keep``: False
@@ -166,10 +181,10 @@ class DynamicFilter:
             dyn |= self.geo.in_region(samples(ideal), self._check_depth(frame, pr))
         return ~dyn.reshape(n, -1).all(axis=1)
 
-    def keep(self, frame: Frame, feats: Features, boxes: np.ndarray | None = None) -> np.ndarray:
-        """(N,) bool over ``feats``: True for keypoints that may be used for tracking and mapping; ``boxes``:
+    def keep(self, frame: Frame, feats: Features, objects: Instances | None = None) -> np.ndarray:
+        """(N,) bool over ``feats``: True for keypoints that may be used for tracking and mapping; ``objects``:
         this frame's ``detect`` if computed ahead (else it runs here)."""
-        dyn = self.dynamic_source(frame, feats, boxes)
+        dyn = self.dynamic_source(frame, feats, objects)
         self._feats = feats
         self._depth = self._check_depth(frame, feats.raw)
         if self.geo is not None:
@@ -205,7 +220,7 @@ class DynamicFilter:
         static background than walker, which would outvote it)."""
         g, out = self.cfg.geometric, []
         self._movers = [(t, b) for t, b in self._movers if self._t - t <= g.moving_memory_s + 1e-6]
-        for box in self._boxes:
+        for box in self._objects.boxes:
             inside = in_boxes(feats.raw, box[None], self.cfg.dilation_px, self.cfg.box_grow) & geo.tested
             judged = moving = False  # too few compared keypoints: neither verdict
             if inside.sum() >= g.static_min_points:

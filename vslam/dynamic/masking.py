@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -49,3 +51,65 @@ def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     area = lambda x: (x[:, 2] - x[:, 0]) * (x[:, 3] - x[:, 1])  # noqa: E731
     union = area(a)[:, None] + area(b)[None, :] - inter
     return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+
+
+@dataclass(frozen=True)
+class InstanceMask:
+    """One detection's pixels within its box: ``pixels`` (h,w) bool covers image rows y0..y0+h-1 and columns
+    x0..x0+w-1 (a crop, so a frame's instances and the box memory stay small and cheap to union)."""
+
+    x0: int
+    y0: int
+    pixels: np.ndarray
+
+
+@dataclass(frozen=True)
+class Instances:
+    """One frame's dynamic objects from the detector(s): ``boxes`` (K,4) float64 x1,y1,x2,y2 pixels; ``masks``
+    (K,) the box's ``InstanceMask``, or None where the whole box is masked (no mask head, a mask too small to
+    trust, ``slam.dynamic.mask=box``, a box followed by ``box_track_s``)."""
+
+    boxes: np.ndarray
+    masks: tuple[InstanceMask | None, ...]
+
+    def __len__(self) -> int:
+        return len(self.boxes)
+
+    @staticmethod
+    def from_boxes(boxes: np.ndarray) -> Instances:
+        b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+        return Instances(b, (None,) * len(b))
+
+    @staticmethod
+    def concat(parts: list[Instances]) -> Instances:
+        return Instances(np.concatenate([p.boxes for p in parts]).reshape(-1, 4) if parts else np.zeros((0, 4)),
+                         tuple(m for p in parts for m in p.masks))
+
+    def subset(self, keep: np.ndarray) -> Instances:
+        """``keep``: (K,) bool."""
+        return Instances(self.boxes[keep], tuple(m for m, k in zip(self.masks, keep) if k))
+
+
+def crop_mask(mask: np.ndarray, box: np.ndarray, min_fill: float) -> InstanceMask | None:
+    """(H,W) bool instance mask and its (4,) box -> the mask's pixels within the box (pixel centres x1 <= x <= x2,
+    y1 <= y <= y2: it never masks more than its box), or None when they cover less than ``min_fill`` of the box's
+    pixels in the image (an empty or broken mask: the box is safer)."""
+    h, w = mask.shape[:2]
+    x0, y0 = max(int(np.ceil(box[0])), 0), max(int(np.ceil(box[1])), 0)
+    x1, y1 = min(int(np.floor(box[2])), w - 1), min(int(np.floor(box[3])), h - 1)
+    if x1 < x0 or y1 < y0:
+        return None
+    pixels = np.array(mask[y0:y1 + 1, x0:x1 + 1], dtype=bool)  # a copy: the full (K,H,W) masks are not kept
+    n = int(np.count_nonzero(pixels))
+    if n == 0 or n < min_fill * pixels.size:
+        return None
+    return InstanceMask(x0, y0, pixels)
+
+
+def paint(masks: list[InstanceMask], shape: tuple[int, int]) -> np.ndarray:
+    """(H,W) bool union of instance masks."""
+    out = np.zeros(shape, bool)
+    for m in masks:
+        h, w = m.pixels.shape
+        out[m.y0:m.y0 + h, m.x0:m.x0 + w] |= m.pixels[:max(shape[0] - m.y0, 0), :max(shape[1] - m.x0, 0)]
+    return out

@@ -22,6 +22,7 @@ import numpy as np
 from vslam.backend.ba import BackendConfig, StereoCamera
 from vslam.data.types import Calibration, Frame, SensorKind
 from vslam.dynamic import DynamicConfig, DynamicFilter
+from vslam.dynamic.masking import Instances
 from vslam.features import FeatureConfig, Features, make_extractor
 from vslam.features.lines import LineConfig, LineFeatures
 from vslam.features.depth import depth_rgbd, depth_stereo, stereo_ur
@@ -96,15 +97,15 @@ class SlamConfig:
 class FrontEnd:
     """What one frame's images alone determine (no map state), from ``SlamTracker.frontend``: keypoints, the
     right image's keypoints (stereo), line segments (lines on), keypoint depth (None: computed in ``track``,
-    after dynamic filtering), the detector's boxes of dynamic objects (``slam.dynamic.source=detector``), and ms
-    per stage where it ran."""
+    after dynamic filtering), the detector's boxes and instance masks of dynamic objects
+    (``slam.dynamic.source=detector``, ``DynamicFilter.detect``), and ms per stage where it ran."""
 
     feats: Features
     right: Features | None
     lines: LineFeatures | None
     depth: np.ndarray | None
     ms: dict[str, float]
-    boxes: np.ndarray | None = None
+    objects: Instances | None = None
 
 
 @dataclass
@@ -228,14 +229,14 @@ class SlamTracker:
         # dynamic filtering drops keypoints first, and rectified stereo matching depends on which are left
         depth = self._depth(frame, feats, right) if self.dynamic is None else None
         t3 = time.perf_counter()
-        boxes = self.dynamic.detect(frame) if self.dynamic is not None else None
+        objects = self.dynamic.detect(frame) if self.dynamic is not None else None
         t4 = time.perf_counter()
         if pending is not None:  # beside the networks, "lines" is what was left to wait for after them
             lines = pending.result()
         t5 = time.perf_counter()
         ms = {"features": (t1 - t0) * 1e3, "lines": (t2 - t1 + t5 - t4) * 1e3, "depth": (t3 - t2) * 1e3,
               "detector": (t4 - t3) * 1e3}
-        return FrontEnd(feats, right, lines, depth, ms, boxes)
+        return FrontEnd(feats, right, lines, depth, ms, objects)
 
     def _detect_lines(self, frame: Frame) -> LineFeatures | None:
         if self.lines is None:
@@ -262,7 +263,7 @@ class SlamTracker:
             front = self.frontend(frame)
         feats, lines, t_dyn = front.feats, front.lines, time.perf_counter()
         if self.dynamic is not None:  # issue 5: keypoints and segments on moving objects reach neither tracking nor mapping
-            kept = np.flatnonzero(self.dynamic.keep(frame, feats, front.boxes))
+            kept = np.flatnonzero(self.dynamic.keep(frame, feats, front.objects))
             feats = feats.subset(kept)
             if lines is not None and len(lines):
                 lines = lines.subset(np.flatnonzero(self.dynamic.keep_segments(frame, lines.raw, lines.segs)))
@@ -378,7 +379,7 @@ class SlamTracker:
                         "mapping": (t4 - t3) * 1e3 + ms_flush, **{f"map_{k}": v for k, v in ms_map.items()}}
         if self.dynamic is not None:
             est.times_ms["dynamic"] = ms_dynamic
-            if front.boxes is not None:
+            if front.objects is not None:
                 est.times_ms["detector"] = front.ms["detector"]
         if self.lines is not None:
             est.times_ms["lines"] = front.ms["lines"]

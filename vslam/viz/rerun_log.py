@@ -234,9 +234,9 @@ class RerunLogger:
             for f, name in enumerate(FATE_NAMES):
                 rec.log(f"world/camera/image/keypoints/{name}",
                         rr.Points2D(raw[fate == f], colors=FATE_COLORS[f], radii=2.5))
-            if view.front.boxes is not None:
+            if view.front.objects is not None:
                 rec.log("world/camera/image/boxes/detector",
-                        rr.Boxes2D(array=np.asarray(view.front.boxes).reshape(-1, 4), array_format=rr.Box2DFormat.XYXY,
+                        rr.Boxes2D(array=np.asarray(view.front.objects.boxes).reshape(-1, 4), array_format=rr.Box2DFormat.XYXY,
                                    colors=(235, 40, 40)))
             if view.front.lines is not None:
                 rec.log("world/camera/image/lines",
