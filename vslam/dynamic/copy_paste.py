@@ -14,6 +14,10 @@ the dynamic benchmark's walkers come that close, and a detector that never saw a
 misses them); brightness follows the background (gain 0.5-1.3) and the alpha edge is feathered by a 3x3 blur,
 so the pasted outline is not a shortcut. Optionally a person leans (``tilt``) or is partly hidden behind a patch
 of the scene (``occluded``): the benchmark's walkers lean when the camera rolls and pass behind the teddy bear.
+
+Instance masks: a pasted person's mask is its visible part (alpha at least half, less what later pastes and
+patches cover), the pixels its box is the box of; the masks of the background's own instances lose the pixels
+a paste or patch now covers.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vslam.dynamic.data import Sample
+from vslam.dynamic.data import Sample, ignore_boxes, instance_masks, mask_validity
 
 
 def background_files(root: Path, sources: dict[str, tuple[str, int, int]]) -> list[Path]:
@@ -54,6 +58,26 @@ def crop_background(img: np.ndarray, rng: np.random.Generator, aspect: float = 4
     return img[:, x0:x0 + cw]
 
 
+def crop_sample(s: Sample, rng: np.random.Generator, aspect: float = 4 / 3, min_visible: float = 0.3) -> Sample:
+    """``crop_background`` of a labelled sample (the same draw): boxes, masks and ignore regions cut to the window;
+    a box keeps only if ``min_visible`` of it is left, as in ``data.place``."""
+    h, w = s.image.shape[:2]
+    cw = min(w, int(round(h * aspect)))
+    x0 = int(rng.integers(0, w - cw + 1))
+    b = s.boxes.astype(np.float64).reshape(-1, 4) - [x0, 0, x0, 0]
+    area = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
+    b[:, [0, 2]] = np.clip(b[:, [0, 2]], 0, cw)
+    keep = ((b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1]) >= min_visible * np.maximum(area, 1e-9)) & (b[:, 2] - b[:, 0] > 2)
+    ign = None
+    if s.ignore is not None:
+        ign = ignore_boxes(s) - [x0, 0, x0, 0]
+        ign[:, [0, 2]] = np.clip(ign[:, [0, 2]], 0, cw)
+        ign = ign[ign[:, 2] > ign[:, 0]]
+    masks = None if s.masks is None else np.ascontiguousarray(s.masks[keep][:, :, x0:x0 + cw])
+    valid = None if s.mask_valid is None else s.mask_valid[keep]
+    return Sample(s.image[:, x0:x0 + cw], b[keep], s.labels[keep], masks, valid, ign)
+
+
 def tilted(cut: np.ndarray, degrees: float) -> np.ndarray:
     """A BGRA cutout rotated by ``degrees`` on a canvas grown to hold all of it (transparent corners)."""
     ch, cw = cut.shape[:2]
@@ -67,11 +91,12 @@ def tilted(cut: np.ndarray, degrees: float) -> np.ndarray:
 
 
 def occlude(img: np.ndarray, scene: np.ndarray, owner: np.ndarray, box: tuple[int, int, int, int],
-            rng: np.random.Generator) -> None:
+            rng: np.random.Generator) -> tuple[int, int, int, int] | None:
     """Cover 30-70 % of a pasted person (``box`` x0, y0, x1, y1 of its pasted pixels) with a patch of ``scene``
     (the background before any paste, so no piece of a person is copied unlabelled) from elsewhere, in place:
     from the left, the right or below, or a band through the middle (someone behind a teddy bear on a table
-    shows two halves). Covered pixels belong to no paste (``owner`` -1)."""
+    shows two halves). Covered pixels belong to no paste (``owner`` -1). -> the covered window x0, y0, x1, y1,
+    None when the patch came out too thin to draw."""
     H, W = img.shape[:2]
     X0, Y0, X1, Y1 = box
     bw, bh, f = X1 - X0, Y1 - Y0, rng.uniform(0.3, 0.7)
@@ -91,10 +116,11 @@ def occlude(img: np.ndarray, scene: np.ndarray, owner: np.ndarray, box: tuple[in
     x1, y1 = min(W, x1 + 2 * (x1 == X1)), min(H, y1 + 2 * (y1 == Y1))
     w, h = x1 - x0, y1 - y0
     if w < 2 or h < 2:
-        return
+        return None
     sx, sy = int(rng.integers(0, W - w + 1)), int(rng.integers(0, H - h + 1))
     img[y0:y1, x0:x1] = scene[sy:sy + h, sx:sx + w]
     owner[y0:y1, x0:x1] = -1
+    return x0, y0, x1, y1
 
 
 def paste(sample: Sample, cutouts: list[np.ndarray], label: int, rng: np.random.Generator, n: int,
@@ -105,10 +131,14 @@ def paste(sample: Sample, cutouts: list[np.ndarray], label: int, rng: np.random.
     over a labelled object only hides part of it; a fully hidden one would still be labelled, which at our
     paste sizes is rare and matches COCO's own occluded labels). With probability ``tilt`` a cutout is rotated
     by up to ``tilt_deg`` (a billboard seen by a rolling camera leans), with probability ``occluded`` part of it
-    is then covered (``occlude``). Probabilities at 0 draw nothing, so earlier recipes stay reproducible."""
+    is then covered (``occlude``). Probabilities at 0 draw nothing, so earlier recipes stay reproducible.
+    Masks (module docstring): the result has masks when the background has or a person is pasted; the
+    background's instances without a mask stay without (``mask_valid`` False), as does one a paste hides
+    entirely."""
     img = sample.image.copy()
     H, W = img.shape[:2]
     owner = np.full((H, W), -1, np.int32)  # which paste is visible at each pixel
+    covered = np.zeros((H, W), bool)  # pixels a paste or a patch drew over: hidden from the background's instances
     areas = []
     for k in range(n):
         cut = cutouts[int(rng.integers(len(cutouts)))]
@@ -133,17 +163,30 @@ def paste(sample: Sample, cutouts: list[np.ndarray], label: int, rng: np.random.
         img[Y0:Y1, X0:X1] = (alpha * colour + (1 - alpha) * region).astype(np.uint8)
         hard = part[..., 3] >= 128
         owner[Y0:Y1, X0:X1][hard] = k
+        covered[Y0:Y1, X0:X1] |= hard
         areas.append((k, int(hard.sum()), (X0, Y0, X1, Y1)))
         if occluded > 0 and rng.random() < occluded:
             ys, xs = np.nonzero(owner[Y0:Y1, X0:X1] == k)
             if len(xs):
                 box = (X0 + xs.min(), Y0 + ys.min(), X0 + xs.max() + 1, Y0 + ys.max() + 1)
-                occlude(img, sample.image, owner, box, rng)
-    boxes, labels = [sample.boxes.reshape(-1, 4)], [sample.labels]
+                patch = occlude(img, sample.image, owner, box, rng)
+                if patch is not None:
+                    covered[patch[1]:patch[3], patch[0]:patch[2]] = True
+    boxes, labels, masks = [sample.boxes.reshape(-1, 4)], [sample.labels], []
     for k, area, (X0, Y0, X1, Y1) in areas:
         ys, xs = np.nonzero(owner[Y0:Y1, X0:X1] == k)  # a paste owns pixels of its own window only
         if area == 0 or len(xs) < min_visible * area:
             continue
         boxes.append(np.array([[X0 + xs.min(), Y0 + ys.min(), X0 + xs.max() + 1, Y0 + ys.max() + 1]], np.float64))
         labels.append(np.array([label], np.int64))
-    return Sample(img, np.concatenate(boxes).astype(np.float64), np.concatenate(labels))
+        m = np.zeros((H, W), bool)
+        m[Y0:Y1, X0:X1] = owner[Y0:Y1, X0:X1] == k
+        masks.append(m)
+    ignore = None if sample.ignore is None else ignore_boxes(sample)
+    boxes_out, labels_out = np.concatenate(boxes).astype(np.float64), np.concatenate(labels)
+    if sample.masks is None and not masks:
+        return Sample(img, boxes_out, labels_out, None, sample.mask_valid, ignore)
+    old, old_valid = instance_masks(sample) & ~covered, mask_validity(sample)
+    old_valid = old_valid & old.any(axis=(1, 2))  # wholly hidden: no mask to learn
+    all_masks = np.concatenate([old, np.array(masks, bool).reshape(-1, H, W)])
+    return Sample(img, boxes_out, labels_out, all_masks, np.concatenate([old_valid, np.ones(len(masks), bool)]), ignore)

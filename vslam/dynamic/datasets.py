@@ -11,6 +11,10 @@ integer, is divisible by 4 (about a quarter), else in ``train``. It depends on t
 on every machine and for every subset of a folder, and a frame keeps its side when the full dataset is added.
 COCO128 keeps its own folders: ``train2017`` is train, ``val2017`` is val. Validation images are never trained on
 and never cut out for copy-paste (``penn_fudan_cutouts`` reads the train split only).
+
+Training samples (``record_sample``, ``penn_fudan_samples``, ``kitti_object_samples``): a record's image downscaled
+as ``data.load_yolo`` does, with its boxes, its instance masks where the source has them (Penn-Fudan) and its
+ignore regions (KITTI DontCare / Misc).
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from vslam.dynamic.data import Sample, resize_masks
 from vslam.errors import ConfigError, DatasetError
 
 Split = Literal["train", "val", "all"]
@@ -287,3 +292,40 @@ def load_kitti_object(root: str | Path, split: Split, classes: tuple[str, ...] =
         out.append(Record(img, np.array(boxes, np.float64).reshape(-1, 4), np.array(labels, np.int64),
                           np.array(ignore, np.float64).reshape(-1, 4)))
     return _non_empty(out, root / "label_2", split)
+
+
+# --- training samples ----------------------------------------------------------------------------------------
+
+def record_sample(rec: Record, max_side: int = 640) -> Sample:
+    """A record as a training ``Sample``: the image downscaled so its longer side is at most ``max_side``, boxes
+    and ignore regions scaled with it, and the instance masks where the source has them (``mask_valid`` False for
+    a box without one: id 0, an empty mask, or a source without masks)."""
+    img = rec.image()
+    h, w = img.shape[:2]
+    r = min(1.0, max_side / max(h, w))
+    masks = rec.masks()
+    if masks is not None and masks.shape[1:] != (h, w):
+        raise DatasetError(rec.mask_path or rec.path, f"mask {masks.shape[2]}x{masks.shape[1]} is not the size of "
+                                                      f"its image {rec.path.name} ({w}x{h})")
+    if r < 1.0:
+        nw, nh = round(w * r), round(h * r)
+        img = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA)
+        masks = resize_masks(masks, nw, nh) if masks is not None else None
+    k = len(rec.boxes)
+    valid = np.zeros(k, bool) if masks is None else masks.any(axis=(1, 2))
+    ignore = rec.ignore.astype(np.float64).reshape(-1, 4) * r
+    return Sample(img, rec.boxes.astype(np.float64).reshape(-1, 4) * r, rec.labels.astype(np.int64),
+                  masks if valid.any() else None, valid, ignore if len(ignore) else None)
+
+
+def penn_fudan_samples(root: str | Path, classes: tuple[str, ...], split: Split = "train",
+                       max_side: int = 640) -> list[Sample]:
+    """Penn-Fudan pedestrians of ``split`` (train for training: never val) with their instance masks."""
+    return [record_sample(r, max_side) for r in load_penn_fudan(root, split, classes)]
+
+
+def kitti_object_samples(root: str | Path, classes: tuple[str, ...], split: Split = "train",
+                         max_side: int = 640) -> list[Sample]:
+    """KITTI object frames of ``split`` (train for training: never val): boxes without masks (``mask_valid``
+    False), DontCare / Misc as ``ignore``."""
+    return [record_sample(r, max_side) for r in load_kitti_object(root, split, classes)]

@@ -36,7 +36,8 @@ import numpy as np
 import torch
 
 from vslam import ddp
-from vslam.dynamic.data import Sample, collate, collate_u8, load_yolo, place, synthetic_samples
+from vslam.dynamic.data import (Sample, collate, collate_ignore, collate_masks, collate_u8, load_yolo, place,
+                                synthetic_samples)
 from vslam.dynamic.detector import postprocess, save_checkpoint
 from vslam.dynamic.loss import LossConfig, MaskTargets, detection_loss
 from vslam.dynamic.metrics import detection_report
@@ -92,6 +93,15 @@ class TrainConfig:
     # train the mask head alone over the frozen ``init`` detector (its boxes, scores and BatchNorm statistics stay
     # exactly as they were): a mask head for a trained detector at a fraction of a full run's cost
     freeze_detector: bool = False
+    # real photos beside COCO128 (relative to $VSLAM_DATA or absolute; "" to leave out), their train splits only
+    # (``datasets.split_of``): Penn-Fudan people with instance masks, KITTI object boxes with DontCare ignored
+    penn_fudan: str = ""
+    kitti_object: str = ""
+    cutouts: tuple[str, ...] = ("coco",)  # where pasted people come from: coco, penn_fudan (train split)
+    # sources whose unlabelled people / vehicles get the teacher's boxes (FastestDet, ``vslam.dynamic.pseudo``):
+    # coco, penn_fudan, kitti_object; the boxes train detection only (no mask)
+    pseudo: tuple[str, ...] = ()
+    pseudo_threshold: float = 0.5
     resume: bool = False
     evaluate: bool = True  # measure the held-out sets at the end (off where their data is not at hand)
     toy: bool = False  # tiny model, tiny images, a few iterations: a smoke test of the whole recipe on CPU
@@ -106,6 +116,10 @@ class TrainConfig:
                 raise ConfigError(f"train.{name} is a probability (0-1), got {getattr(self, name)}")
         if self.masks < 0 or self.mask_gain < 0:
             raise ConfigError(f"train.masks and train.mask_gain must be >= 0, got {self.masks} and {self.mask_gain}")
+        unknown = (set(self.cutouts) - {"coco", "penn_fudan"}) | (set(self.pseudo) - {"coco", "penn_fudan", "kitti_object"})
+        if unknown:
+            raise ConfigError(f"train.cutouts / train.pseudo: unknown source(s) {sorted(unknown)} (cutouts: coco, penn_fudan; "
+                              "pseudo: coco, penn_fudan, kitti_object)")
         if self.freeze_detector and not (self.masks and self.init):
             raise ConfigError("train.freeze_detector trains a mask head over a trained detector: it needs train.masks > 0 "
                               "and train.init")
@@ -129,10 +143,14 @@ class TrainData:
     cutouts: list[np.ndarray]
 
 
-def _coco_root(cfg: TrainConfig) -> Path:
+def _under_data(path: str) -> Path:
     from vslam.paths import data_root
 
-    return Path(cfg.coco) if Path(cfg.coco).is_absolute() else data_root() / cfg.coco
+    return Path(path) if Path(path).is_absolute() else data_root() / path
+
+
+def _coco_root(cfg: TrainConfig) -> Path:
+    return _under_data(cfg.coco)
 
 
 def _held_out_stems(cfg: TrainConfig) -> frozenset[str]:
@@ -153,21 +171,44 @@ def training_data(cfg: TrainConfig) -> TrainData:
     from vslam.paths import data_root
 
     person = cfg.classes.index("person") if "person" in cfg.classes else None
-    train: list[Sample] = []
+    masks = cfg.masks > 0  # box-only recipes read no masks: their samples, draws and weights stay as they were
+    sources: dict[str, list[Sample]] = {}
     backgrounds: list[Sample] = []
     cutouts: list[np.ndarray] = []
     paste = cfg.copy_paste > 0 and person is not None
     if cfg.coco:
         skip = _held_out_stems(cfg)
-        coco = load_yolo(_coco_root(cfg), "train2017", cfg.classes, skip=skip)
-        train += coco
-        if paste:
+        sources["coco"] = load_yolo(_coco_root(cfg), "train2017", cfg.classes, skip=skip, segments=masks)
+        if paste and "coco" in cfg.cutouts:
             from vslam.dynamic.composite import person_instances
 
             found = person_instances(_coco_root(cfg), min_height_px=48, min_aspect=0.0, whole=False, exclude=skip)
-            cutouts = [c for _, c in found]
-            if "coco" in cfg.backgrounds:
-                backgrounds += coco
+            cutouts += [c for _, c in found]
+    if cfg.penn_fudan:
+        from vslam.dynamic.datasets import penn_fudan_cutouts, penn_fudan_samples
+
+        sources["penn_fudan"] = penn_fudan_samples(_under_data(cfg.penn_fudan), cfg.classes, "train")
+        if paste and "penn_fudan" in cfg.cutouts:
+            cutouts += penn_fudan_cutouts(_under_data(cfg.penn_fudan))
+    if cfg.kitti_object:
+        from vslam.dynamic.datasets import kitti_object_samples
+
+        sources["kitti_object"] = kitti_object_samples(_under_data(cfg.kitti_object), cfg.classes, "train")
+    if cfg.pseudo:
+        from vslam.dynamic.pseudo import PseudoConfig, pseudo_label_sources, pseudo_report
+
+        missing = [n for n in cfg.pseudo if n not in sources]
+        if missing:
+            raise ConfigError(f"train.pseudo names {missing}, which this recipe does not read (set train.coco / "
+                              "penn_fudan / kitti_object)")
+        labelled, stats = pseudo_label_sources({n: sources[n] for n in cfg.pseudo}, cfg.classes,
+                                               PseudoConfig(threshold=cfg.pseudo_threshold,
+                                                            cache=str(Path(cfg.out).parent / "pseudo_cache")))
+        sources.update(labelled)
+        log.info("teacher boxes added:\n%s", pseudo_report(stats))
+    if paste and "coco" in cfg.backgrounds and "coco" in sources:
+        backgrounds += sources["coco"]
+    train: list[Sample] = [s for v in sources.values() for s in v]
     if paste:
         from vslam.dynamic.copy_paste import background_files, read_background
         from vslam.features.train_keypoints import KeypointTrainConfig
@@ -179,9 +220,10 @@ def training_data(cfg: TrainConfig) -> TrainData:
         imgs = [im for im in (read_background(f) for f in files) if im is not None]
         backgrounds += [Sample(im, np.zeros((0, 4)), np.zeros(0, np.int64)) for im in imgs]
         if not cutouts or not backgrounds:
-            raise ConfigError("train.copy_paste needs COCO person polygons (train.coco) and backgrounds")
+            raise ConfigError("train.copy_paste needs people to paste (train.cutouts: COCO polygons, Penn-Fudan masks) "
+                              "and backgrounds")
     if person is not None and cfg.synthetic_seeds:
-        train += synthetic_samples(cfg.synthetic_seeds, **_synthetic_kw(cfg, person))
+        train += synthetic_samples(cfg.synthetic_seeds, **_synthetic_kw(cfg, person), masks=masks)
     if not train:
         raise ConfigError("train: no training data (set coco and/or synthetic_seeds)")
     return TrainData(train, backgrounds, cutouts)
@@ -219,18 +261,18 @@ def composite_samples(cfg: TrainConfig, person: int) -> list[Sample]:
 def draw_sample(data: TrainData, cfg: TrainConfig, rng: np.random.Generator) -> Sample:
     """One augmented training sample on the ``img_size`` canvas."""
     if data.cutouts and rng.random() < cfg.copy_paste:
-        from vslam.dynamic.copy_paste import crop_background, paste
+        from vslam.dynamic.copy_paste import crop_sample, paste
 
         bg = data.backgrounds[int(rng.integers(len(data.backgrounds)))]
         if not len(bg.boxes):  # an unlabelled frame: a random 4:3 window of it
-            bg = Sample(crop_background(bg.image, rng), bg.boxes, bg.labels)
+            bg = crop_sample(bg, rng)
         lo, hi = cfg.paste_people
         s = paste(bg, data.cutouts, cfg.classes.index("person"), rng, int(rng.integers(lo, hi + 1)),
                   closeup=cfg.paste_closeup, tilt=cfg.paste_tilt, occluded=cfg.paste_occluded)
     else:
         s = data.samples[int(rng.integers(len(data.samples)))]
     if cfg.grey > 0 and rng.random() < cfg.grey:
-        s = Sample(cv2.cvtColor(cv2.cvtColor(s.image, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR), s.boxes, s.labels)
+        s = replace(s, image=cv2.cvtColor(cv2.cvtColor(s.image, cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR))
     return place(s, cfg.img_size, rng)
 
 
@@ -241,7 +283,9 @@ def _draw(data: TrainData, cfg: TrainConfig, it: int, rank: int | None = None) -
         samples = [place(data.samples[i], cfg.img_size, rng) for i in rng.integers(0, len(data.samples), cfg.batch)]
     else:
         samples = [draw_sample(data, cfg, rng) for _ in range(cfg.batch)]
-    return collate_u8(samples)
+    if not cfg.masks:
+        return collate_u8(samples)
+    return (*collate_u8(samples), *collate_masks(samples, 4), *collate_ignore(samples))  # MaskTargets' order
 
 
 def _on(arrays: tuple[np.ndarray, ...], dev: torch.device) -> tuple[torch.Tensor, ...]:
