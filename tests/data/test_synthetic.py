@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import pickle
 import time
 from pathlib import Path
 
@@ -16,7 +17,7 @@ from vslam.config import from_dict
 from vslam.data.synthetic import SyntheticConfig, SyntheticSequence, write_sequence
 from vslam.data.synthetic.motion import GRAVITY
 from vslam.data.synthetic.render import Renderer
-from vslam.data.synthetic.scene import CLEARANCE, Mover
+from vslam.data.synthetic.scene import CLEARANCE, PAD, Mover, _AtlasBuilder, _Strip
 from vslam.data.types import PinholeCamera
 from vslam.errors import ConfigError
 from vslam.geometry.se3 import inv_T, make_T, so3_exp, so3_log
@@ -279,6 +280,43 @@ def test_same_seed_same_bytes_other_seed_other_data() -> None:
     assert not np.array_equal(fa.image, fc.image)
     assert not np.array_equal(a.imu().gyro, c.imu().gyro)
     assert not np.allclose(a.groundtruth().poses, c.groundtruth().poses)
+
+
+def test_scene_is_built_where_frames_are_rendered_and_not_pickled() -> None:
+    """Issue 41: the tracking process never renders when the front end is a child, so it must not hold the scene
+    (a 590 m street's atlas is 283 MB), and the child gets the sequence without it and builds the same bytes."""
+    seq = SyntheticSequence(SyntheticConfig(n_frames=12, **SMALL))
+    seq.groundtruth(), seq.imu(), seq.timestamps()
+    assert seq._scene is None  # ground truth, IMU and times need no scene
+    small = len(pickle.dumps(seq, protocol=pickle.HIGHEST_PROTOCOL))
+    frame = seq.frame(5)
+    assert seq._scene is not None
+    assert len(pickle.dumps(seq, protocol=pickle.HIGHEST_PROTOCOL)) == small < seq.scene.atlas.nbytes / 4
+    copy = pickle.loads(pickle.dumps(seq))
+    again = copy.frame(5)
+    for name in ("image", "depth", "dynamic_mask", "boxes"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(frame, name))
+    np.testing.assert_array_equal(copy.landmarks(), seq.landmarks())
+
+
+def test_street_atlas_paints_tile_rows_in_place() -> None:
+    """A street face is a row of tiles made of 4 variants; the atlas builder paints it into the final image, with
+    the same bytes (texels and replicated border) as packing the whole row as one image."""
+    rng = np.random.default_rng(0)
+    variants = [rng.integers(0, 255, (5, 7, 3), dtype=np.uint8) for _ in range(4)]
+    order = np.array([2, 0, 0, 3, 1])
+    small = rng.integers(0, 255, (4, 3, 3), dtype=np.uint8)
+    for width in (35, 30, 29):  # whole tiles, a tile cut at its start, mid-tile
+        packed, strip = _AtlasBuilder(40), _AtlasBuilder(40)
+        full = np.concatenate([variants[v] for v in order], axis=1)[:, :width]
+        for b, face in ((packed, full), (strip, _Strip(variants, order, width))):
+            assert [b.add(small), b.add(small), b.add(face)] == [(1.0, 1.0), (6.0, 1.0), (1.0, 7.0)]  # 2 shelves
+        expected = np.zeros((13, 37, 3), np.uint8)
+        for x, y, p in ((0, 0, small), (5, 0, small), (0, 6, full)):
+            padded = cv2.copyMakeBorder(p, PAD, PAD, PAD, PAD, cv2.BORDER_REPLICATE)
+            expected[y : y + padded.shape[0], x : x + padded.shape[1]] = padded
+        np.testing.assert_array_equal(packed.build(), expected[:, : width + 2])
+        np.testing.assert_array_equal(strip.build(), expected[:, : width + 2])
 
 
 def test_blackout_frames_are_black() -> None:

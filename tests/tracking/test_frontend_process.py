@@ -52,6 +52,36 @@ def test_frame_file_round_trip_maps_writable_arrays(tmp_path):
     np.testing.assert_array_equal(read_frame_file(path)[0].image, img)
 
 
+def _mapped_bytes(path: Path) -> int:
+    """Bytes of this process's address space mapped from ``path`` (Linux)."""
+    total = 0
+    for line in Path("/proc/self/maps").read_text().splitlines():
+        if line.endswith(str(path)) or line.endswith(f"{path} (deleted)"):
+            lo, hi = line.split()[0].split("-")
+            total += int(hi, 16) - int(lo, 16)
+    return total
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="reads /proc/self/maps (Linux)")
+def test_a_kept_array_keeps_only_its_own_pages_of_the_frame_file(tmp_path):
+    """Issue 41: keyframes keep a frame's keypoints and descriptors, never its image or depth, so those pages must
+    go with the frame (else a long run holds every keyframe's whole frame file)."""
+    path = tmp_path / "f.pkl"
+    img, depth = np.zeros((480, 640, 3), np.uint8), np.ones((480, 640), np.float32)
+    desc = np.arange(1500 * 64, dtype=np.uint8).reshape(1500, 64) * 3  # 96 KB: a learned extractor's size
+    kps = np.arange(3000.0).reshape(1500, 2)
+    write_frame_file(path, (Frame(0, 0.0, img, depth=depth), {"desc": desc, "kps": kps}))
+    frame, front = read_frame_file(path)
+    path.unlink()  # as the tracking process does
+    assert frame.image.nbytes + frame.depth.nbytes <= _mapped_bytes(path) < frame.image.nbytes + 2 * frame.depth.nbytes
+    del frame
+    np.testing.assert_array_equal(front["kps"], kps)  # small: a copy, no mapping
+    np.testing.assert_array_equal(front["desc"], desc)
+    assert 0 < _mapped_bytes(path) <= desc.nbytes + 4096
+    del front
+    assert _mapped_bytes(path) == 0
+
+
 def test_process_thread_and_inline_front_ends_give_the_same_run(tmp_path):
     runs = {}
     modes = {"process": {}, "thread": {"frontend_process": False}, "inline": {"frontend_thread": False}}
@@ -72,7 +102,7 @@ def test_child_stops_and_its_frame_files_go_away(tmp_path):
     it = iter(child)
     frames = [next(it) for _ in range(2)]
     assert [f.index for f, _ in frames] == [0, 1] and len(frames[0][1].feats) > 0
-    assert not (folder / "spec.pkl").exists()  # read once, then removed (a synthetic sequence is ~40 MB)
+    assert not (folder / "spec.pkl").exists()  # read once, then removed
     child.close()  # early stop: the child is killed, not waited for
     assert proc.poll() is not None and not folder.exists()
     full = FrontEndProcess(seq, 5, seq.calibration, "rgbd", SlamConfig(), blas_threads=1, ahead=2)

@@ -111,37 +111,53 @@ class FrontEndProcess:
 
 
 _LEN = struct.Struct("<Q")
+# Arrays from this many bytes up are mapped from the frame file, each with a mapping of its own: one kept
+# (a keyframe's descriptors) then keeps its own pages, not the frame's image and depth as views into one
+# mapping of the whole file would (a long run would hold every keyframe's frame file). Smaller ones
+# (keypoints, ORB descriptors) are copied: cheap, and no mapping per array.
+_MAP_MIN = 1 << 16
+
+
+def _aligned(pos: int, n: int) -> int:
+    """Where a buffer of ``n`` bytes starts at or after ``pos``: a page boundary (mmap offsets must be one) when it
+    is mapped, else 64 bytes."""
+    a = mmap.ALLOCATIONGRANULARITY if n >= _MAP_MIN else 64
+    return pos + (-pos % a)
 
 
 def write_frame_file(path: Path, obj: object) -> None:
-    """``obj`` as a pickle whose arrays are stored apart, each 64-byte aligned (protocol 5 out-of-band
-    buffers): ``read_frame_file`` maps them instead of copying ~2 MB per frame."""
+    """``obj`` as a pickle whose arrays are stored apart, aligned (protocol 5 out-of-band buffers):
+    ``read_frame_file`` maps the large ones instead of copying ~2 MB per frame."""
     buffers: list[pickle.PickleBuffer] = []
     head = pickle.dumps(obj, protocol=5, buffer_callback=buffers.append)
     raws = [b.raw() for b in buffers]
     with open(path, "wb") as f:
         f.write(_LEN.pack(len(raws)) + _LEN.pack(len(head)) + b"".join(_LEN.pack(r.nbytes) for r in raws) + head)
         for r in raws:
-            f.write(b"\0" * (-f.tell() % 64))
+            f.write(b"\0" * (_aligned(f.tell(), r.nbytes) - f.tell()))
             f.write(r)
 
 
 def read_frame_file(path: Path) -> object:
-    """The object ``write_frame_file`` stored; its arrays are copy-on-write views of the mapped file (writable,
-    the file itself never changes), alive as long as they are."""
+    """The object ``write_frame_file`` stored. Its arrays are writable: the large ones copy-on-write views of
+    their own mapping of the file (the file itself never changes), alive as long as they are; the small ones
+    copies."""
+    buffers: list[memoryview | bytearray] = []
     with open(path, "rb") as f:
-        mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_COPY)
-    view = memoryview(mm)
-    (nbuf,), (nhead,) = _LEN.unpack_from(view, 0), _LEN.unpack_from(view, 8)
-    sizes = [_LEN.unpack_from(view, 16 + 8 * i)[0] for i in range(nbuf)]
-    pos = 16 + 8 * nbuf
-    head = view[pos:pos + nhead]
-    pos += nhead
-    buffers = []
-    for n in sizes:
-        pos += -pos % 64
-        buffers.append(view[pos:pos + n])
-        pos += n
+        (nbuf,), (nhead,) = _LEN.unpack(f.read(8)), _LEN.unpack(f.read(8))
+        sizes = [_LEN.unpack(f.read(8))[0] for _ in range(nbuf)]
+        head = f.read(nhead)
+        pos = 16 + 8 * nbuf + nhead
+        for n in sizes:
+            pos = _aligned(pos, n)
+            if n >= _MAP_MIN:
+                buffers.append(memoryview(mmap.mmap(f.fileno(), n, access=mmap.ACCESS_COPY, offset=pos)))
+            else:
+                buf = bytearray(n)
+                f.seek(pos)
+                f.readinto(buf)
+                buffers.append(buf)
+            pos += n
     return pickle.loads(head, buffers=buffers)
 
 
@@ -224,7 +240,7 @@ def _serve() -> None:
         spec = Path(folder, "spec.pkl")
         with open(spec, "rb") as f:
             seq, n, calibration, sensor, cfg, torch_threads, ahead, log_level = pickle.load(f)
-        spec.unlink()  # a synthetic sequence pickles to ~40 MB: not kept in RAM for the whole run
+        spec.unlink()  # not kept in RAM for the whole run
         root = logging.getLogger()
         root.handlers[:] = [_ForwardLogs(send)]
         root.setLevel(log_level)

@@ -17,7 +17,6 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from vslam.data.synthetic import corridor, textures
@@ -83,21 +82,48 @@ class Scene:
     landmarks: np.ndarray
 
 
+@dataclass(frozen=True, eq=False)
+class _Strip:
+    """A street face's texture as what it is made of -- ``order`` (n,) picks a variant (h, w_tile, 3) uint8 per tile,
+    cut at ``width`` texels -- so the full row of tiles exists only once, in the atlas."""
+
+    variants: list[np.ndarray]
+    order: np.ndarray
+    width: int
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return self.variants[0].shape[0], self.width, 3
+
+    def paint(self, dst: np.ndarray) -> None:
+        """Write the strip into ``dst`` (h, width, 3)."""
+        w_tile = self.variants[0].shape[1]
+        for n, v in enumerate(self.order):
+            x0 = n * w_tile
+            if x0 >= self.width:
+                break
+            x1 = min(x0 + w_tile, self.width)
+            dst[:, x0:x1] = self.variants[v][:, : x1 - x0]
+
+
 class _AtlasBuilder:
-    """Shelf-packs padded patches into one image (rows of patches, left to right)."""
+    """Shelf-packs padded patches into one image (rows of patches, left to right).
+
+    Patches are kept as given and painted once, into the final image (no padded copies): a long street's
+    atlas is hundreds of MB, and each copy of it would add to the peak memory of whichever process builds it.
+    """
 
     def __init__(self, width: int = 4096):
         self.width = width
-        self.patches: list[tuple[int, int, np.ndarray]] = []
+        self.patches: list[tuple[int, int, np.ndarray | _Strip]] = []
         self.x = self.y = self.row_h = 0
 
-    def add(self, img: np.ndarray) -> tuple[float, float]:
+    def add(self, img: np.ndarray | _Strip) -> tuple[float, float]:
         """Place a patch; returns the atlas (x, y) of its texel (0,0)."""
-        padded = cv2.copyMakeBorder(img, PAD, PAD, PAD, PAD, cv2.BORDER_REPLICATE)
-        h, w = padded.shape[:2]
+        h, w = img.shape[0] + 2 * PAD, img.shape[1] + 2 * PAD
         if self.x + w > self.width:
             self.x, self.y, self.row_h = 0, self.y + self.row_h, 0
-        self.patches.append((self.x, self.y, padded))
+        self.patches.append((self.x, self.y, img))
         pos = (float(self.x + PAD), float(self.y + PAD))
         self.x += w
         self.row_h = max(self.row_h, h)
@@ -105,12 +131,24 @@ class _AtlasBuilder:
 
     def build(self) -> np.ndarray:
         height = self.y + self.row_h
-        width = max(x + p.shape[1] for x, _, p in self.patches)
+        width = max(x + p.shape[1] + 2 * PAD for x, _, p in self.patches)
         if max(width, height) >= 32767:  # cv2.remap stores coordinates as int16
             raise ValueError(f"texture atlas {width}x{height} exceeds cv2.remap's 32767 limit; lower ppm")
         atlas = np.zeros((height, width, 3), np.uint8)
         for x, y, p in self.patches:
-            atlas[y : y + p.shape[0], x : x + p.shape[1]] = p
+            h, w = p.shape[:2]
+            inner = atlas[y + PAD : y + PAD + h, x + PAD : x + PAD + w]
+            if isinstance(p, _Strip):
+                p.paint(inner)
+            else:
+                inner[:] = p
+            # the border repeats the edge texels (cv2.BORDER_REPLICATE): bilinear sampling at an edge never
+            # reads a neighbour
+            rows = slice(y + PAD, y + PAD + h)
+            atlas[rows, x : x + PAD] = inner[:, :1]
+            atlas[rows, x + PAD + w : x + 2 * PAD + w] = inner[:, -1:]
+            atlas[y : y + PAD, x : x + w + 2 * PAD] = atlas[y + PAD, x : x + w + 2 * PAD]
+            atlas[y + PAD + h : y + 2 * PAD + h, x : x + w + 2 * PAD] = atlas[y + PAD + h - 1, x : x + w + 2 * PAD]
         return atlas
 
 
@@ -196,11 +234,12 @@ def build_scene(cfg: SyntheticConfig, cam_positions: np.ndarray, frame_tau: np.n
 def _face_texture(
     cfg: SyntheticConfig, rng: np.random.Generator, kind: str, size: tuple[float, float], ppm: float, tile: float,
     style: textures.MarkerStyle,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray | _Strip, np.ndarray]:
     """Texture of a face of ``size`` (s, r) metres and its markers (M,2) in face metres.
 
     tile > 0: the face is a row of tiles, each a copy of one of 4 seeded variants,
-    so a 200 m street costs 4 tiles of generation and neighbouring tiles differ.
+    so a 200 m street costs 4 tiles of generation and neighbouring tiles differ
+    (a ``_Strip``: the row is laid out only in the atlas).
     """
     with_markers = cfg.markers and kind != "sky"
     n_var = 4 if tile > 0 else 1
@@ -212,9 +251,9 @@ def _face_texture(
     if tile <= 0:
         return variants[0], markers[0]
     order = rng.integers(0, n_var, int(np.ceil(size[0] / tile)))
-    strip = np.concatenate([variants[v] for v in order], axis=1)[:, : int(np.ceil(size[0] * ppm))]
+    strip = _Strip(variants, order, min(len(order) * variants[0].shape[1], int(np.ceil(size[0] * ppm))))
     mk = np.concatenate([markers[v] + (n * tile, 0.0) for n, v in enumerate(order)])
-    return np.ascontiguousarray(strip), mk[mk[:, 0] <= size[0] - style.r_out]
+    return strip, mk[mk[:, 0] <= size[0] - style.r_out]
 
 
 def _candidate_mover(cfg: SyntheticConfig, rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray, x_range: tuple[float, float]) -> Mover:

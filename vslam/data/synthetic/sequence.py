@@ -1,7 +1,8 @@
 """SyntheticSequence: a seeded, deterministic Sequence with exact ground truth.
 
-Building one computes the motion, IMU and scene textures (well under a
-second at the default size); frames are ray cast lazily when iterated.
+Building one computes the motion and IMU; the scene and its textures (well
+under a second at the default size) are made at the first frame rendered,
+and frames are ray cast lazily when iterated.
 """
 
 from __future__ import annotations
@@ -94,9 +95,8 @@ class SyntheticSequence(Sequence):
             depth_scale=DEPTH_SCALE,
         )
         self._T_wc0 = self.motion.T_world_cam0(self._tau)
-        centres = np.stack([self._T_wc0[:, :3, 3], (self._T_wc0 @ self.T_cam0_cam1)[:, :3, 3]], axis=1)
-        self.scene: Scene = build_scene(cfg, centres, self._tau)
-        self._renderer = Renderer(self.scene, cam)
+        self._scene: Scene | None = None  # built on first use (``scene``)
+        self._renderer: Renderer | None = None
         imu_us = imu_grid_us(cfg, int(frame_us[-1]))
         self._imu_ns = start_ns + imu_us * 1000
         self._imu, self._imu_truth = synthesize_imu(cfg, self.motion, imu_us)
@@ -111,10 +111,27 @@ class SyntheticSequence(Sequence):
             self._fade[start : start + length] = True
         rng = np.random.default_rng([cfg.seed, 4])  # stream 4: lighting
         self._light = (rng.uniform(3.0, 5.0), rng.uniform(0, 2 * np.pi), rng.uniform(5.0, 8.0), rng.uniform(0, 2 * np.pi))
-        logger.debug(
-            "%s: %d frames, %d IMU samples, %d movers, atlas %s",
-            self.name, len(self), len(self._imu), len(self.scene.movers), self.scene.atlas.shape,
-        )
+
+    @property
+    def scene(self) -> Scene:
+        """The static box, its texture atlas and the movers, built when first needed: a long street's atlas is
+        hundreds of MB, and a process that renders no frame (the tracking process, when the front end runs in a
+        child) then never holds it."""
+        if self._scene is None:
+            T = self._T_wc0
+            centres = np.stack([T[:, :3, 3], (T @ self.T_cam0_cam1)[:, :3, 3]], axis=1)
+            self._scene = build_scene(self.cfg, centres, self._tau)
+            self._renderer = Renderer(self._scene, self.calibration.cam0)
+            logger.debug("%s: %d frames, %d IMU samples, %d movers, atlas %s", self.name, len(self), len(self._imu),
+                         len(self._scene.movers), self._scene.atlas.shape)
+        return self._scene
+
+    def __getstate__(self) -> dict:
+        """Pickled without the scene: it is a function of ``cfg`` (seeded), so the receiver builds the same bytes
+        if it renders, and a sequence sent to a child process is a few MB instead of the atlas's hundreds."""
+        state = self.__dict__.copy()
+        state["_scene"] = state["_renderer"] = None
+        return state
 
     # ------------------------------------------------------------------ Sequence interface
 
@@ -188,6 +205,8 @@ class SyntheticSequence(Sequence):
                 np.zeros((cfg.height, cfg.width), bool), np.zeros((0, 4)), np.zeros(0, np.int64), T,
             )
         tau = float(self._tau[i])
+        scene = self.scene
+        assert self._renderer is not None  # built with the scene
         left = self._renderer.render(T, tau, movers)
         lut = self._lighting_lut(i)
         image = self._sensor(i, 0, self._faded(i, self._blurred(i, cv2.LUT(left.image, lut) if lut is not None else left.image)))
@@ -195,7 +214,7 @@ class SyntheticSequence(Sequence):
         if right:
             view = self._renderer.render(T @ self.T_cam0_cam1, tau, movers)
             right_img = self._sensor(i, 1, self._faded(i, self._blurred(i, cv2.LUT(view.image, lut) if lut is not None else view.image)))
-        boxes, ids = boxes_from_ids(left.obj, len(self.scene.movers))
+        boxes, ids = boxes_from_ids(left.obj, len(scene.movers))
         return SyntheticRender(image, left.depth, right_img, left.obj > 0, boxes, ids, T)
 
     def _blurred(self, i: int, image: np.ndarray) -> np.ndarray:
