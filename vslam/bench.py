@@ -46,7 +46,7 @@ SIDECAR_VERSION = 1
 STAGES = ("features", "depth", "pose", "mapping", "map_create", "map_fuse_cull", "map_ba", "map_wait", "map_loop")
 PER_FRAME = ("features", "depth", "pose", "total")  # run on every frame: median ms/frame
 # kinds run once whatever --repeat says (deterministic, or repeating their measurement inside the job)
-SINGLE_RUN_KINDS = ("place", "features", "detector", "speed", "line_ba")
+SINGLE_RUN_KINDS = ("place", "features", "detector", "speed", "line_ba", "eval_detector")
 # kinds with a table of their own below the SLAM table
 OWN_TABLE_KINDS = ("fusion", "imu_preint", "batch", "ab") + SINGLE_RUN_KINDS
 
@@ -54,7 +54,7 @@ OWN_TABLE_KINDS = ("fusion", "imu_preint", "batch", "ab") + SINGLE_RUN_KINDS
 class BenchRow:
     name: str
     kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch", "place", "features", "detector", "ab",
-                  "speed", "line_ba"] = "run"
+                  "speed", "line_ba", "eval_detector"] = "run"
     config: str = ""  # pipeline YAML, relative to the suite file's folder's parent (the repo root) or absolute
     set: tuple[str, ...] = ()  # KEY=VALUE overrides
     note: str = ""
@@ -255,6 +255,30 @@ def _job_detector(overrides: dict[str, Any]) -> dict[str, Any]:
     return {**res, "seconds": time.perf_counter() - t0, "peak_rss_mb": peak_rss_mb()}
 
 
+def _job_eval_detector(overrides: dict[str, Any]) -> dict[str, Any]:
+    """Issue 40: ``vslam eval-detector`` over several labelled folders. ``set``: data=[folder:split, ...] (under
+    $VSLAM_DATA), model (checkpoint; "" = the shipped one) or teacher=true (FastestDet), img_size, threads ->
+    {"sets": {"<folder's first part>-<split>": the evaluator's report}}."""
+    from vslam.dynamic.eval_detector import build_detector, evaluate, predict
+    from vslam.dynamic.datasets import load_records
+    from vslam.paths import data_root
+
+    t0 = time.perf_counter()
+    data = [str(d) for d in overrides.get("data", ())]
+    if not data:
+        raise ConfigError("bench kind eval_detector needs set: data=[folder:split, ...]")
+    det, threshold, name = build_detector(str(overrides.get("model", "")), bool(overrides.get("teacher", False)),
+                                          int(overrides.get("threads", 2)), int(overrides.get("img_size", 0)))
+    sets = {}
+    for spec in data:
+        folder, _, split = spec.partition(":")
+        _, records = load_records(data_root() / folder, split or "val")  # type: ignore[arg-type]
+        rep = evaluate(records, predict(det, records), threshold)
+        sets[f"{Path(folder).parts[0]}-{split or 'val'}"] = rep
+    return {"model": name, "threshold": threshold, "sets": sets, "seconds": time.perf_counter() - t0,
+            "peak_rss_mb": peak_rss_mb()}
+
+
 def _job_speed(overrides: dict[str, Any]) -> dict[str, Any]:
     """Issue 10: the learned front end's networks, ms per frame on one device (``profiling.network_speed``;
     ``set``: device, frames, repeats, threads). device=cuda on a machine without a GPU is skipped, not failed:
@@ -282,6 +306,8 @@ def execute_job(kind: str, config: str | None, overrides: dict[str, Any], out_di
         return _job_features(overrides)
     if kind == "detector":
         return _job_detector(overrides)
+    if kind == "eval_detector":
+        return _job_eval_detector(overrides)
     if kind == "speed":
         return _job_speed(overrides)
     if kind == "line_ba":
@@ -625,6 +651,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     lines += _place_table([(row, e["result"]) for row, e in entries if row.kind == "place"])
     lines += _features_table([(row, e["result"]) for row, e in entries if row.kind == "features"])
     lines += _detector_table([(row, e["result"]) for row, e in entries if row.kind == "detector"])
+    lines += _eval_detector_table([(row, e["result"]) for row, e in entries if row.kind == "eval_detector"])
     lines += _speed_table([(row, e["result"]) for row, e in entries if row.kind == "speed"])
     lines += _line_ba_table([(row, e["result"]) for row, e in entries if row.kind == "line_ba"])
     lines += batch_table([(row, e["result"]) for row, e in entries if row.kind == "batch"])
@@ -790,6 +817,19 @@ def _detector_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     from vslam.dynamic.evaluate import format_table
 
     return _report_tables(rows, "## Dynamic-object detector (issue 5, `{name}`)", format_table)
+
+
+def _eval_detector_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
+    """Issue 40: a detector on the real validation splits (``vslam eval-detector``), one table per folder."""
+    from vslam.dynamic.eval_detector import format_report
+
+    def tables(r: dict[str, Any]) -> list[str]:
+        out = [f"{r['model']}, recall / precision / mask IoU at score {r['threshold']:g}"]
+        for name, rep in r["sets"].items():
+            out += ["", f"{name} ({rep['images']} images):", "", *format_report(rep, name)]
+        return out
+
+    return _report_tables(rows, "## Detector on real photos (issue 40, `{name}`)", tables)
 
 
 def _speed_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:

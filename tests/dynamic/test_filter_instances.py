@@ -14,7 +14,7 @@ from vslam.data.trajectory import Trajectory
 from vslam.data.types import Frame, PinholeCamera
 from vslam.dynamic import DynamicConfig, DynamicFilter, dilate, in_boxes, in_mask
 from vslam.dynamic.detector import Detections
-from vslam.dynamic.masking import Instances, crop_mask, paint
+from vslam.dynamic.masking import Instances, crop_mask, grow_in_box, paint
 from vslam.errors import ConfigError
 from vslam.eval import EvalConfig, evaluate
 from vslam.features.base import Features
@@ -156,11 +156,32 @@ def test_segments_off_the_instance_are_kept():
     assert out == {"instance": [True, False], "box": [False, False]}
 
 
+def test_masks_grow_by_half_a_prototype_cell_inside_their_box():
+    """A detector whose prototype cell spans 6 image pixels: its L grows by 3 px (mask_grow_cells 0.5), within the
+    box, before dilation_px."""
+    f, mask = _feats(), _l_mask()
+
+    class Coarse(_Fixed):
+        def detect(self, image):
+            d = super().detect(image)
+            return Detections(d.boxes, d.scores, d.class_ids, d.class_names, d.masks, 6.0)
+
+    got = DynamicFilter(_cfg(), CAM, detector=Coarse([BOX], mask[None])).keep(_frame(), f)
+    grown = paint([crop_mask(dilate(mask, 3), BOX, 0.2)], (48, 64))
+    np.testing.assert_array_equal(got, ~in_mask(f.raw, dilate(grown, 2)))
+    assert (~got).sum() > (~DynamicFilter(_cfg(mask_grow_cells=0.0), CAM, detector=Coarse([BOX], mask[None])).keep(
+        _frame(), f)).sum()
+    np.testing.assert_array_equal(grow_in_box(mask, BOX, 3)[:, 45:], False)  # nothing computed past box + 3 px
+    assert grow_in_box(mask, BOX, 0) is mask
+
+
 def test_mask_config_is_validated():
     with pytest.raises(ConfigError, match="slam.dynamic.mask must be instance or box"):
         DynamicConfig(mask="polygon")  # type: ignore[arg-type]
     with pytest.raises(ConfigError, match="mask_min_fill"):
         DynamicConfig(mask_min_fill=1.5)
+    with pytest.raises(ConfigError, match="mask_grow_cells"):
+        DynamicConfig(mask_grow_cells=-1)
     assert DynamicConfig().mask == "instance"
     assert len(Instances.concat([])) == 0
 

@@ -137,8 +137,9 @@ def test_detector_returns_one_mask_per_box_and_none_without_a_head():
     seg = Detector(YoloDetector(DetectorConfig(masks=4, **TINY)).eval(), ["person", "car"], img_size=96, conf=0.0)
     d = seg.detect(img)
     assert len(d.boxes) > 0 and d.masks is not None and d.masks.shape == (len(d.boxes), 120, 160)
+    assert d.mask_px == pytest.approx(4 / (96 / 160))  # one prototype cell in image pixels
     plain = Detector(YoloDetector(DetectorConfig(**TINY)).eval(), ["person", "car"], img_size=96, conf=0.0)
-    assert plain.detect(img).masks is None
+    assert plain.detect(img).masks is None and plain.detect(img).mask_px == 0.0
 
 
 def test_a_detection_checkpoint_grows_a_mask_head_and_a_frozen_detector_keeps_its_boxes(tmp_path):

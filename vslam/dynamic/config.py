@@ -70,6 +70,10 @@ class DynamicConfig:
     # head, a mask covering less than mask_min_fill of its box) masks its box. "box": always the box.
     mask: MaskShape = "instance"
     mask_min_fill: float = 0.2  # an instance mask that covers less of its box is not trusted: the box is masked
+    # instance masks grow by this many of their prototype cells (Detections.mask_px) before dilation_px: a mask
+    # assembled at 1/4 of the network's input has outlines uncertain by about half a cell (~5 px for a 640x480
+    # frame at the shipped 256 px input), and ORB corners sit on outlines
+    mask_grow_cells: float = 0.5
     # detector boxes below this score are ignored. The threshold belongs to the weights: set it with them (KITTI's
     # round 4 at 0.2, bench row kitti07-people-mono-detector). 0.15 for the shipped SE model: best mean and worst
     # ATE on the twelve TUM validation composites (docs/dynamic.md).
@@ -96,7 +100,7 @@ class DynamicConfig:
     # box memory did not help either (docs/dynamic.md).
     box_track_s: float = 0.0
     box_track_min_matches: int = 6  # fewer matches inside a followed box: it stays where it was this frame
-    weights: str = ""  # detector checkpoint (source=detector); "" = the shipped vslam/models/detector_se_gpu.pt
+    weights: str = ""  # detector checkpoint (source=detector); "" = the shipped vslam/models/detector_se_seg.pt
     # more detector checkpoints whose boxes are masked too (an ensemble: the union of their boxes, each network
     # costs its own time). Recall is what masking needs: a person the detector misses leaks keypoints into the
     # map, and on TUM teddy composites with a close-up walker cut by the frame tracking then follows the walker.
@@ -117,6 +121,8 @@ class DynamicConfig:
             raise ConfigError(f"slam.dynamic.mask must be instance or box, got {self.mask!r}")
         if not 0 <= self.mask_min_fill <= 1:
             raise ConfigError(f"slam.dynamic.mask_min_fill must be in [0, 1], got {self.mask_min_fill}")
+        if self.mask_grow_cells < 0:
+            raise ConfigError(f"slam.dynamic.mask_grow_cells must be >= 0, got {self.mask_grow_cells}")
         if self.dilation_px < 0:
             raise ConfigError("slam.dynamic.dilation_px must be >= 0")
         if not 0 <= self.box_grow <= 1:

@@ -25,13 +25,15 @@ from vslam.resources import shipped_model
 class Detections:
     """boxes: (K,4) float x1,y1,x2,y2 pixels of the input image; scores: (K,); class_ids: (K,) int;
     class_names: (K,) str; masks: (K,H,W) bool instance masks in the input image's pixels, or None where the
-    network has no mask head (then a box is all there is to mask)."""
+    network has no mask head (then a box is all there is to mask); mask_px: the image pixels one prototype cell
+    spans (the masks' resolution: their outlines are uncertain by about half of it)."""
 
     boxes: np.ndarray
     scores: np.ndarray
     class_ids: np.ndarray
     class_names: np.ndarray
     masks: np.ndarray | None = None
+    mask_px: float = 0.0
 
 
 def letterbox(image: np.ndarray, size: int) -> tuple[np.ndarray, float, tuple[int, int]]:
@@ -120,7 +122,7 @@ class Detector:
         b[:, [1, 3]] = (b[:, [1, 3]] - py) / r
         ids = c.cpu().numpy().astype(np.int64)
         return Detections(b, s.cpu().numpy().astype(np.float64), ids, np.array([self.names[i] for i in ids], dtype=object),
-                          masks)
+                          masks, 4.0 / r if masks is not None else 0.0)
 
 
 def save_checkpoint(path: str | Path, model: YoloDetector, names: list[str], half: bool = False, **extra: object) -> Path:
@@ -136,9 +138,9 @@ def save_checkpoint(path: str | Path, model: YoloDetector, names: list[str], hal
 
 
 def default_weights() -> Path:
-    """The shipped detector (package data vslam/models/detector_se_gpu.pt; its card, and why this one, in
-    models/README.md)."""
-    return shipped_model("detector_se_gpu.pt")
+    """The shipped detector (package data vslam/models/detector_se_seg.pt: the SE detector with an instance-mask
+    head; its card, and why this one, in models/README.md)."""
+    return shipped_model("detector_se_seg.pt")
 
 
 def load_model(path: str | Path, field: str = "slam.dynamic.weights") -> tuple[YoloDetector, dict]:

@@ -140,16 +140,17 @@ def format_report(rep: dict[str, Any], title: str) -> list[str]:
     """Markdown table, one row per class with ground truth."""
     masks = any(k.startswith("mask_iou/") for k in rep)
     head = f"| {title} | GT | AP50 | AP50-95 | recall@{rep['threshold']:g} | precision@{rep['threshold']:g} |"
-    head += " mask IoU (matched, box as mask) | GT box as mask | image mask IoU |" if masks else ""
+    head += " mask IoU (matched) | its box as mask | GT box as mask | image mask IoU |" if masks else ""
     lines = [head, "|---" * (head.count("|") - 1) + "|"]
-    f = lambda k: f"{rep[k]:.3f}" if k in rep and rep[k] == rep[k] else "–"  # noqa: E731 (NaN -> –)
+    f = lambda k: f"{rep[k]:.3f}" if rep.get(k) is not None and rep[k] == rep[k] else "–"  # noqa: E731 (NaN, None -> –)
     for name in EVAL_CLASSES:
         if not rep.get(f"n_gt/{name}"):
             continue
         row = f"| {name} | {rep[f'n_gt/{name}']} | {f(f'AP50/{name}')} | {f(f'AP50-95/{name}')} | {f(f'recall/{name}')} | " \
               f"{f(f'precision/{name}')} |"
         if masks:
-            row += f" {f(f'mask_iou/{name}')} | {f(f'gt_box_mask_iou/{name}')} | {f(f'image_mask_iou/{name}')} |"
+            row += f" {f(f'mask_iou/{name}')} | {f(f'box_mask_iou/{name}')} | {f(f'gt_box_mask_iou/{name}')} | " \
+                   f"{f(f'image_mask_iou/{name}')} |"
         lines.append(row)
     return lines
 

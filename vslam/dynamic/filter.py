@@ -11,7 +11,7 @@ import numpy as np
 
 from vslam.data.types import Frame, PinholeCamera
 from vslam.dynamic.config import DynamicConfig
-from vslam.dynamic.masking import Instances, box_iou, crop_mask, dilate, in_boxes, in_mask, paint
+from vslam.dynamic.masking import Instances, box_iou, crop_mask, dilate, grow_in_box, in_boxes, in_mask, paint
 from vslam.dynamic.motion import GeometricCheck
 from vslam.features.base import Features
 from vslam.features.matching import match_by_projection
@@ -86,7 +86,8 @@ class DynamicFilter:
             boxes = det.boxes[sel].reshape(-1, 4)
             masks = getattr(det, "masks", None)
             if c.mask == "instance" and masks is not None:
-                crops = tuple(crop_mask(masks[k], b, c.mask_min_fill) for k, b in zip(sel, boxes))
+                grow = int(np.ceil(c.mask_grow_cells * float(getattr(det, "mask_px", 0.0))))
+                crops = tuple(crop_mask(grow_in_box(masks[k], b, grow), b, c.mask_min_fill) for k, b in zip(sel, boxes))
                 parts.append(Instances(boxes, crops))
             else:
                 parts.append(Instances.from_boxes(boxes))

@@ -106,6 +106,19 @@ def crop_mask(mask: np.ndarray, box: np.ndarray, min_fill: float) -> InstanceMas
     return InstanceMask(x0, y0, pixels)
 
 
+def grow_in_box(mask: np.ndarray, box: np.ndarray, px: int) -> np.ndarray:
+    """(H,W) bool mask grown by ``px`` pixels, computed only in its box's window (what ``crop_mask`` keeps)."""
+    if px <= 0:
+        return mask
+    h, w = mask.shape[:2]
+    x0, y0 = max(int(np.floor(box[0])) - px, 0), max(int(np.floor(box[1])) - px, 0)
+    x1, y1 = min(int(np.ceil(box[2])) + px + 1, w), min(int(np.ceil(box[3])) + px + 1, h)
+    out = np.zeros((h, w), bool)
+    if x1 > x0 and y1 > y0:
+        out[y0:y1, x0:x1] = dilate(mask[y0:y1, x0:x1], px)
+    return out
+
+
 def paint(masks: list[InstanceMask], shape: tuple[int, int]) -> np.ndarray:
     """(H,W) bool union of instance masks."""
     out = np.zeros(shape, bool)
