@@ -54,6 +54,32 @@ def test_float_mutual_matching_equals_the_brute_force_definition():
     assert len(match_mutual(same, same, ratio=0.99)) == 0
 
 
+def _bf_mutual(d1, d2, ratio, max_dist):
+    """match_mutual's binary pairs as OpenCV's brute-force matcher gives them (two k-NN passes)."""
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+    bwd = {m[0].queryIdx: m[0].trainIdx for m in bf.knnMatch(d2, d1, k=1)}
+    return [[m[0].queryIdx, m[0].trainIdx] for m in bf.knnMatch(d1, d2, k=2)
+            if (ratio is None or m[0].distance < ratio * m[1].distance) and m[0].distance <= max_dist
+            and bwd[m[0].trainIdx] == m[0].queryIdx]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_binary_mutual_matching_equals_opencvs_brute_force(seed):
+    """The one-matrix popcount path gives OpenCV's pairs, ties included (lower index wins both ways): noisy copies
+    of 700 descriptors among 1300 (two blocks of rows and a partial one), and 2-bit descriptors where nearly every
+    distance ties."""
+    rng = np.random.default_rng(seed)
+    d2 = _desc(1300, rng)
+    d1 = np.vstack([_flip_bits(d2[rng.permutation(1300)[:700]], 20, rng), _desc(600, rng)])
+    coarse = rng.integers(0, 2, (300, 32), dtype=np.uint8)
+    for a, b in ((d1, d2), (coarse, coarse[::-1].copy()), (coarse[:40], coarse[10:]), (d1[:2], d2[:3])):
+        for ratio, max_dist in ((0.8, np.inf), (None, np.inf), (0.9, 60), (0.99, 0)):
+            want = _bf_mutual(a, b, ratio, max_dist)
+            got = match_mutual(a, b, ratio=ratio, max_dist=max_dist)
+            assert got.dtype == np.int64 and got.tolist() == want
+    assert len(match_mutual(d1, d2, ratio=0.8)) > 600
+
+
 def test_projection_matching_radius_threshold_and_uniqueness():
     rng = np.random.default_rng(1)
     kp_desc = _desc(50, rng)
@@ -107,6 +133,31 @@ def test_bucketing_spreads_keypoints():
     keep = bucket(xy, resp, (240, 320), 200, 8, 6)
     assert len(keep) == 200
     assert np.sum(keep >= 1000) >= 90  # almost all spread keypoints survive
+
+
+def _bucket_lexsort(xy, response, shape, n, cols, rows):
+    """bucket written with two lexsorts: (cell, -response, index) ranks, then (rank, -response, index)."""
+    if len(xy) <= n:
+        return np.arange(len(xy))
+    h, w = shape
+    cx = np.clip((xy[:, 0] * cols / w).astype(np.int64), 0, cols - 1)
+    cell = np.clip((xy[:, 1] * rows / h).astype(np.int64), 0, rows - 1) * cols + cx
+    order = np.lexsort((np.arange(len(xy)), -response, cell))
+    first = np.r_[0, np.flatnonzero(np.diff(cell[order])) + 1]
+    rank = np.empty(len(xy), np.int64)
+    rank[order] = np.arange(len(order)) - np.repeat(first, np.diff(np.r_[first, len(order)]))
+    return np.sort(np.lexsort((np.arange(len(xy)), -response, rank))[:n])
+
+
+def test_bucketing_equals_the_two_lexsort_ranking():
+    """One argsort on (cell, strength rank) keys and a partition give the lexsort ranking's keypoints, equal
+    responses included (ties by index)."""
+    rng = np.random.default_rng(4)
+    xy = rng.uniform([0, 0], [1241, 376], (4500, 2))
+    for resp in (rng.gamma(2.0, 1e-3, 4500), rng.integers(0, 6, 4500).astype(float)):
+        for n in (1, 150, 1500, 4499, 4500):
+            np.testing.assert_array_equal(bucket(xy, resp, (376, 1241), n, 16, 12),
+                                          _bucket_lexsort(xy, resp, (376, 1241), n, 16, 12))
 
 
 def test_orb_extractor_on_synthetic_image():

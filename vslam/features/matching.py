@@ -38,6 +38,8 @@ def match_mutual(d1: np.ndarray, d2: np.ndarray, ratio: float | None = 0.8, max_
         return np.zeros((0, 2), np.int64)
     if d1.dtype != np.uint8:
         return _mutual_float(d1, d2, ratio, max_dist / BITS_PER_L2)
+    if hasattr(np, "bitwise_count") and d1.shape[1] % 8 == 0:
+        return _mutual_binary(d1, d2, ratio, max_dist)
     bf = cv2.BFMatcher(cv2.NORM_HAMMING)
     fwd = bf.knnMatch(d1, d2, k=2)
     bwd = np.full(len(d2), -1, np.int64)
@@ -50,6 +52,51 @@ def match_mutual(d1: np.ndarray, d2: np.ndarray, ratio: float | None = 0.8, max_
         and bwd[m[0].trainIdx] == m[0].queryIdx
     ]
     return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+
+
+_MUTUAL_BLOCK = 128  # rows of the (N1,N2) Hamming matrix at a time (a block of ~1500 columns stays in cache)
+
+
+def _mutual_binary(d1: np.ndarray, d2: np.ndarray, ratio: float | None, max_dist: float) -> np.ndarray:
+    """``match_mutual`` for binary descriptors: the pairs of OpenCV's two brute-force k-NN passes (best and second
+    best per row, best per column; ties to the lower index) from one Hamming matrix, built a block of rows at a
+    time by 64-bit popcount: OpenCV computes every distance once per direction (docs/speed.md;
+    tests/features/test_matching.py checks the pairs against OpenCV's)."""
+    n1, n2 = len(d1), len(d2)
+    a = np.ascontiguousarray(d1).view(np.uint64)  # (N1,W)
+    bt = np.ascontiguousarray(np.ascontiguousarray(d2).view(np.uint64).T)  # (W,N2): one row per word
+    big = np.iinfo(np.int32).max
+    best_j = np.empty(n1, np.int64)
+    best_d = np.empty(n1, np.int64)
+    second_d = np.empty(n1, np.int64)
+    col_key = np.full(n2, big, np.int32)  # per column min of distance * N1 + row: its nearest row, lowest on ties
+    words = np.empty((_MUTUAL_BLOCK, n2), np.uint64)
+    bits = np.empty((_MUTUAL_BLOCK, n2), np.uint8)
+    for s in range(0, n1, _MUTUAL_BLOCK):
+        blk = a[s:s + _MUTUAL_BLOCK]
+        m = len(blk)
+        w, c = words[:m], bits[:m]
+        D = np.zeros((m, n2), np.uint16)
+        for k in range(bt.shape[0]):
+            np.bitwise_xor(blk[:, k, None], bt[k], out=w)
+            np.bitwise_count(w, out=c)
+            D += c
+        r = np.arange(m)
+        j = D.argmin(axis=1)  # the first minimum: the lowest column on ties
+        d = D[r, j]
+        D[r, j] = np.iinfo(np.uint16).max
+        second_d[s:s + m] = D.min(axis=1)
+        D[r, j] = d
+        best_j[s:s + m], best_d[s:s + m] = j, d
+        key = D.astype(np.int32)
+        key *= n1
+        key += (s + r)[:, None]
+        np.minimum(col_key, key.min(axis=0), out=col_key)
+    rows = np.arange(n1)
+    ok = (col_key[best_j] % n1 == rows) & (best_d <= max_dist)
+    if ratio is not None:
+        ok &= best_d < ratio * second_d
+    return np.stack([rows[ok], best_j[ok]], axis=1).reshape(-1, 2)
 
 
 def _mutual_float(d1: np.ndarray, d2: np.ndarray, ratio: float | None, max_l2: float) -> np.ndarray:
@@ -129,7 +176,7 @@ def _best_pairs_binary(valid: np.ndarray, ki: np.ndarray, pt_desc: np.ndarray, k
     big = np.iinfo(np.int64).max
     pi, ci = np.nonzero(valid)  # distances of the candidates within the radius only (~20 % at 4 px)
     kv = ki[pi, ci].astype(np.int64)
-    dist = _hamming_pairs(pt_desc, kp_desc, pi, kv)
+    dist = hamming_pairs(pt_desc, kp_desc, pi, kv)
     key = np.full(valid.shape, big, np.int64)
     key[pi, ci] = dist * (n + 1) + kv
     two = np.partition(key, 1, axis=1)[:, :2] if key.shape[1] > 1 else np.concatenate([key, np.full_like(key, big)], axis=1)
@@ -226,11 +273,11 @@ def match_epipolar(
     if len(ia) == 0:
         return empty
     if desc_a.dtype == np.uint8:
-        return _best_sorted(ia, jb, _hamming_pairs(desc_a, desc_b, ia, jb), len(uv_b), max_dist, ratio)
+        return best_sorted(ia, jb, hamming_pairs(desc_a, desc_b, ia, jb), len(uv_b), max_dist, ratio)
     return best_pairs(ia, jb, descriptor_rows(desc_a[ia], desc_b[jb]).astype(np.float64), max_dist, ratio)
 
 
-def _hamming_pairs(desc_a: np.ndarray, desc_b: np.ndarray, ia: np.ndarray, jb: np.ndarray) -> np.ndarray:
+def hamming_pairs(desc_a: np.ndarray, desc_b: np.ndarray, ia: np.ndarray, jb: np.ndarray) -> np.ndarray:
     """Hamming distances (M,) int64 of desc_a[ia] and desc_b[jb]: 64-bit words and a hardware popcount where the
     descriptors allow it (numpy >= 2.0, width a multiple of 8 bytes), else the byte table."""
     if hasattr(np, "bitwise_count") and desc_a.shape[1] % 8 == 0:
@@ -244,8 +291,8 @@ def _hamming_pairs(desc_a: np.ndarray, desc_b: np.ndarray, ia: np.ndarray, jb: n
     return hamming_rows(desc_a[ia], desc_b[jb]).astype(np.int64)
 
 
-def _best_sorted(qi: np.ndarray, ti: np.ndarray, dist: np.ndarray, n_targets: int, max_dist: float,
-                 ratio: float | None) -> np.ndarray:
+def best_sorted(qi: np.ndarray, ti: np.ndarray, dist: np.ndarray, n_targets: int, max_dist: float,
+                ratio: float | None) -> np.ndarray:
     """``best_pairs`` for integer distances and candidates grouped by query (qi ascending): the best and second
     best per query by a minimum over each group (no sort), same pairs as ``best_pairs``."""
     key = dist * n_targets + ti  # unique within a query: (distance, target) order as best_pairs' lexsort

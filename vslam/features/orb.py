@@ -32,13 +32,16 @@ def bucket(xy: np.ndarray, response: np.ndarray, shape: tuple[int, int], n: int,
     cx = np.clip((xy[:, 0] * cols / w).astype(np.int64), 0, cols - 1)
     cy = np.clip((xy[:, 1] * rows / h).astype(np.int64), 0, rows - 1)
     cell = cy * cols + cx
-    order = np.lexsort((np.arange(len(xy)), -response, cell))  # by cell, then strongest first
+    m = len(xy)
+    strength = np.empty(m, np.int64)  # 0 = strongest; equal responses by index
+    strength[np.argsort(-response, kind="stable")] = np.arange(m)
+    order = np.argsort(cell * m + strength)  # by cell, then strongest first (unique keys: one sort)
     sorted_cell = cell[order]
     first = np.r_[0, np.flatnonzero(np.diff(sorted_cell)) + 1]
-    start = np.repeat(first, np.diff(np.r_[first, len(order)]))
-    rank = np.empty(len(xy), np.int64)
-    rank[order] = np.arange(len(order)) - start
-    pick = np.lexsort((np.arange(len(xy)), -response, rank))[:n]
+    start = np.repeat(first, np.diff(np.r_[first, m]))
+    rank = np.empty(m, np.int64)
+    rank[order] = np.arange(m) - start
+    pick = np.argpartition(rank * m + strength, n - 1)[:n]  # the n smallest (rank, strength) keys
     return np.sort(pick)
 
 

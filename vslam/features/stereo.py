@@ -24,7 +24,7 @@ import numpy as np
 
 from vslam.data.types import Calibration
 from vslam.features.base import Features
-from vslam.features.matching import best_pairs, descriptor_rows
+from vslam.features.matching import best_pairs, best_sorted, descriptor_rows, hamming_pairs
 
 _W = 5  # half patch
 _L = 5  # half search range (pixels of the keypoint's level)
@@ -41,32 +41,47 @@ def is_rectified(calib: Calibration, tol: float = 1e-6) -> bool:
 
 
 def pyramid(gray: np.ndarray, scale_factor: float, n_levels: int) -> list[np.ndarray]:
-    """Levels resized like OpenCV's ORB (level l: size / scale_factor^l, bilinear), int16 for SAD."""
+    """Levels resized like OpenCV's ORB (level l: size / scale_factor^l, bilinear), uint8 like ``gray``."""
     h, w = gray.shape[:2]
-    out = [gray.astype(np.int16)]
+    out = [gray]
     for lvl in range(1, n_levels):
         s = scale_factor**lvl
-        out.append(cv2.resize(gray, (int(round(w / s)), int(round(h / s))), interpolation=cv2.INTER_LINEAR).astype(np.int16))
+        out.append(cv2.resize(gray, (int(round(w / s)), int(round(h / s))), interpolation=cv2.INTER_LINEAR))
     return out
 
 
 def _row_matches(left: Features, right: Features, fx_b: float, min_depth: float, max_depth: float,
                  max_hamming: int) -> tuple[np.ndarray, np.ndarray]:
-    """(left idx, right idx) of the best row-band candidate per left keypoint (step 1)."""
+    """(left idx, right idx) of the best row-band candidate per left keypoint (step 1).
+
+    Candidates come from the right keypoints sorted by row (ORB-SLAM2's row index): each left keypoint reads
+    the run of right keypoints within its band, so the work grows with the pairs in the bands, not with
+    N_left x N_right (docs/speed.md; tests/features/test_stereo.py checks it against the full pair matrix)."""
     dl, dr = left.uv, right.uv
     band = 2.0 * left.level_scale()
-    dv = np.abs(dl[:, None, 1] - dr[None, :, 1])
-    disp = dl[:, None, 0] - dr[None, :, 0]
-    ok = (dv <= band[:, None]) & (disp >= fx_b / max_depth) & (disp <= fx_b / min_depth)
-    ok &= np.abs(left.octave[:, None] - right.octave[None, :]) <= 1
-    il, ir = np.nonzero(ok)
-    pairs = best_pairs(il, ir, descriptor_rows(left.desc[il], right.desc[ir]).astype(np.float64), max_hamming, None)
+    order = np.argsort(dr[:, 1], kind="stable")
+    vr = dr[order, 1]
+    # the band's rows, widened by a hair: rounding of v -/+ band cannot drop a pair the exact test below keeps
+    lo = np.searchsorted(vr, dl[:, 1] - band - 1e-6, side="left")
+    n = np.maximum(np.searchsorted(vr, dl[:, 1] + band + 1e-6, side="right") - lo, 0)
+    il = np.repeat(np.arange(len(dl)), n)  # ascending: candidates grouped by left keypoint
+    ir = order[np.arange(len(il)) - np.repeat(np.cumsum(n) - n - lo, n)]
+    disp = dl[il, 0] - dr[ir, 0]
+    ok = (np.abs(dl[il, 1] - dr[ir, 1]) <= band[il]) & (disp >= fx_b / max_depth) & (disp <= fx_b / min_depth)
+    ok &= np.abs(left.octave[il] - right.octave[ir]) <= 1
+    il, ir = il[ok], ir[ok]
+    if len(il) == 0:
+        return il, ir
+    if left.desc.dtype == np.uint8:
+        pairs = best_sorted(il, ir, hamming_pairs(left.desc, right.desc, il, ir), len(right), max_hamming, None)
+    else:
+        pairs = best_pairs(il, ir, descriptor_rows(left.desc[il], right.desc[ir]).astype(np.float64), max_hamming, None)
     return pairs[:, 0], pairs[:, 1]
 
 
 def _refine(img_l: np.ndarray, img_r: np.ndarray, xl: np.ndarray, y: np.ndarray, xr: np.ndarray,
             ) -> tuple[np.ndarray, np.ndarray]:
-    """One pyramid level (int16 images): integer left (xl, y), right guess xr (K,) level pixels ->
+    """One pyramid level (grey images): integer left (xl, y), right guess xr (K,) level pixels ->
     (sub-pixel right x (K,), SAD (K,)); NaN where the patch leaves the image or the minimum is not interior."""
     h, w = img_l.shape
     k = len(xl)
@@ -75,14 +90,20 @@ def _refine(img_l: np.ndarray, img_r: np.ndarray, xl: np.ndarray, y: np.ndarray,
     idx = np.flatnonzero(ok)
     if len(idx) == 0:
         return out, sad
-    dy, dx = np.mgrid[-_W:_W + 1, -_W:_W + 1]
-    yy = y[idx, None, None] + dy  # (K,11,11)
-    pl = img_l[yy, xl[idx, None, None] + dx]
-    pl = pl - pl[:, _W:_W + 1, _W:_W + 1]  # ORB-SLAM2 subtracts the centre pixel (brightness offset)
     offs = np.arange(-_L - 1, _L + 2)  # one extra on each side for the parabola at the edges
-    pr = img_r[yy[:, None], xr[idx, None, None, None] + offs[None, :, None, None] + dx[None]]  # (K,13,11,11)
-    pr = pr - pr[:, :, _W:_W + 1, _W:_W + 1]
-    d = np.abs(pl[:, None] - pr).sum(axis=(2, 3)).astype(np.float64)  # (K,13)
+    # patches copied as windows of the images, one block per keypoint: (K,11,11) left, and one (K,11,23) strip
+    # right whose 13 windows are the right patches at the offsets
+    win_l = np.lib.stride_tricks.sliding_window_view(img_l, (2 * _W + 1, 2 * _W + 1))
+    win_r = np.lib.stride_tricks.sliding_window_view(img_r, (2 * _W + 1, 2 * (_W + _L + 1) + 1))
+    pl = win_l[y[idx] - _W, xl[idx] - _W].astype(np.int16)
+    pl = pl - pl[:, _W:_W + 1, _W:_W + 1]  # ORB-SLAM2 subtracts the centre pixel (brightness offset)
+    strip = win_r[y[idx] - _W, xr[idx] - _W - _L - 1].astype(np.int16)
+    win = np.lib.stride_tricks.sliding_window_view(strip, 2 * _W + 1, axis=2).transpose(0, 2, 1, 3)  # offset, row, col
+    pr = np.empty((len(idx), len(offs), 2 * _W + 1, 2 * _W + 1), np.int16)  # C order: each patch's SAD sums in place
+    np.subtract(win, strip[:, _W, _W:_W + len(offs), None, None], out=pr)  # minus each window's centre pixel
+    np.subtract(pl[:, None], pr, out=pr)  # within +-510: int16 holds it
+    np.abs(pr, out=pr)
+    d = pr.reshape(len(idx), len(offs), -1).sum(axis=2, dtype=np.int32).astype(np.float64)  # (K,13)
     best = np.argmin(d[:, 1:-1], axis=1) + 1
     interior = (best > 1) & (best < len(offs) - 2)
     r = np.arange(len(idx))
