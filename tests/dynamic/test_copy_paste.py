@@ -39,21 +39,24 @@ def test_pasted_box_is_the_box_of_visible_pixels():
         assert abs(lit[0].min() - y1) <= 1 and abs(lit[0].max() + 1 - y2) <= 1
 
 
+class SameRng:
+    """An rng that always draws the same place and size."""
+
+    def integers(self, lo, hi=None):
+        return 0 if hi is None else lo + (hi - lo) // 2
+
+    def uniform(self, lo, hi):
+        return (lo + hi) / 2
+
+    def random(self):
+        return 0.9
+
+
 def test_a_paste_hidden_by_a_later_one_is_dropped():
     """Two identical cutouts at the same place: the second hides the first, so only one box survives."""
 
-    class Same:  # an rng that always draws the same place and size
-        def integers(self, lo, hi=None):
-            return 0 if hi is None else lo + (hi - lo) // 2
-
-        def uniform(self, lo, hi):
-            return (lo + hi) / 2
-
-        def random(self):
-            return 0.9
-
     bg = Sample(np.zeros((120, 160, 3), np.uint8), np.zeros((0, 4)), np.zeros(0, np.int64))
-    s = paste(bg, [_cutout(60, 24)], label=0, rng=Same(), n=2)  # type: ignore[arg-type]
+    s = paste(bg, [_cutout(60, 24)], label=0, rng=SameRng(), n=2)  # type: ignore[arg-type]
     assert len(s.boxes) == 1 and s.labels.tolist() == [0]
 
 

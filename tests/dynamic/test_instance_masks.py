@@ -14,6 +14,7 @@ from vslam.dynamic.data import (Sample, add_instances, collate_ignore, collate_m
 from vslam.dynamic.datasets import (kitti_object_samples, load_kitti_object, load_penn_fudan, penn_fudan_samples,
                                     split_of)
 from vslam.errors import DatasetError
+from tests.dynamic.test_copy_paste import SameRng
 from vslam.paths import data_root
 
 PENN = data_root() / "penn_fudan" / "PennFudanPed"
@@ -99,25 +100,12 @@ def _cutout(h: int, w: int, colour: int = 250) -> np.ndarray:
     return np.dstack([np.full((h, w, 3), colour, np.uint8), a])
 
 
-class _Same:
-    """An rng that always draws the same place and size (test_copy_paste.py)."""
-
-    def integers(self, lo, hi=None):
-        return 0 if hi is None else lo + (hi - lo) // 2
-
-    def uniform(self, lo, hi):
-        return (lo + hi) / 2
-
-    def random(self):
-        return 0.9
-
-
 def test_paste_masks_are_the_visible_alpha_and_hide_what_they_cover():
     bg_mask = np.zeros((1, 120, 160), bool)
     bg_mask[0, 10:110, 40:120] = True  # a labelled object under the paste
     bg = Sample(np.zeros((120, 160, 3), np.uint8), np.array([[40.0, 10, 120, 110]]), np.array([2]), bg_mask)
-    once = paste(bg, [_cutout(60, 24)], 0, _Same(), 1)  # type: ignore[arg-type]
-    twice = paste(bg, [_cutout(60, 24)], 0, _Same(), 2)  # type: ignore[arg-type]  # the second hides the first
+    once = paste(bg, [_cutout(60, 24)], 0, SameRng(), 1)  # type: ignore[arg-type]
+    twice = paste(bg, [_cutout(60, 24)], 0, SameRng(), 2)  # type: ignore[arg-type]  # the second hides the first
     assert len(once.boxes) == len(twice.boxes) == 2 and once.mask_valid.tolist() == [True, True]
     pasted = once.masks[1]
     np.testing.assert_array_equal(_bbox(pasted), once.boxes[1])
