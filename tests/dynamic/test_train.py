@@ -145,3 +145,15 @@ def test_hsv_jitter_table_equals_the_per_pixel_formula():
         img = np.random.default_rng(seed).integers(0, 256, (48, 64, 3), dtype=np.uint8)
         np.testing.assert_array_equal(_hsv_jitter(img, np.random.default_rng([seed, 1])),
                                       per_pixel(img, np.random.default_rng([seed, 1])), err_msg=str(seed))
+
+
+def test_the_new_sources_are_checked_by_name():
+    from vslam.dynamic.train import TrainConfig, training_data
+    from vslam.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="unknown source"):
+        TrainConfig(cutouts=("flickr",))
+    with pytest.raises(ConfigError, match="unknown source"):
+        TrainConfig(pseudo=("tum",))
+    with pytest.raises(ConfigError, match="train.pseudo names \\['kitti_object'\\]"):
+        training_data(TrainConfig(coco="", synthetic_seeds=(), pseudo=("kitti_object",)))
