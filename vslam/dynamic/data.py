@@ -16,6 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from vslam.dynamic.masking import box_iou
 from vslam.errors import DatasetError
 
 log = logging.getLogger(__name__)
@@ -201,17 +202,6 @@ def match_polygons(boxes: np.ndarray, classes: np.ndarray, poly_boxes: np.ndarra
     return out
 
 
-def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(N,4) x (M,4) x1,y1,x2,y2 -> (N,M) IoU."""
-    a, b = np.asarray(a, np.float64).reshape(-1, 4), np.asarray(b, np.float64).reshape(-1, 4)
-    iw = np.clip(np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None)
-    ih = np.clip(np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None)
-    inter = iw * ih
-    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
-    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
-    return inter / np.maximum(area_a[:, None] + area_b[None, :] - inter, 1e-12)
-
-
 def _with_polygons(s: Sample, coco80: np.ndarray, seg_path: Path, width: float, height: float) -> Sample:
     """``s`` with the masks of the polygons in ``seg_path`` matched to its boxes (``coco80``: each box's class
     in ``labels/``); boxes without a polygon, or all of them when the file is missing, have no mask."""
@@ -315,7 +305,7 @@ def place(sample: Sample, size: int, rng: np.random.Generator | None, scale: tup
     flip = rng is not None and rng.random() < 0.5
     if flip:
         canvas = canvas[:, ::-1].copy()
-        b = np.stack([size - b[:, 2], b[:, 1], size - b[:, 0], b[:, 3]], 1)
+        b = _mirrored(b, size)
     if rng is not None:
         canvas = _hsv_jitter(canvas, rng)
     masks, valid = _place_masks(sample, keep, nw, nh, ox, oy, size, flip)
@@ -324,8 +314,13 @@ def place(sample: Sample, size: int, rng: np.random.Generator | None, scale: tup
         ignore = np.clip(ignore_boxes(sample) * r + [ox, oy, ox, oy], 0, size)
         ignore = ignore[(ignore[:, 2] > ignore[:, 0]) & (ignore[:, 3] > ignore[:, 1])]
         if flip:
-            ignore = np.stack([size - ignore[:, 2], ignore[:, 1], size - ignore[:, 0], ignore[:, 3]], 1).reshape(-1, 4)
+            ignore = _mirrored(ignore, size)
     return Sample(canvas, b.reshape(-1, 4), labels, masks, valid, ignore)
+
+
+def _mirrored(boxes: np.ndarray, size: int) -> np.ndarray:
+    """(N,4) x1,y1,x2,y2 boxes of a ``size``-wide canvas flipped left-right."""
+    return np.stack([size - boxes[:, 2], boxes[:, 1], size - boxes[:, 0], boxes[:, 3]], 1).reshape(-1, 4)
 
 
 def _place_masks(sample: Sample, keep: np.ndarray, nw: int, nh: int, ox: int, oy: int, size: int,

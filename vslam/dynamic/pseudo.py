@@ -31,8 +31,9 @@ from typing import Protocol
 
 import numpy as np
 
-from vslam.dynamic.data import Sample, add_instances, box_iou, ignore_boxes
+from vslam.dynamic.data import Sample, add_instances, ignore_boxes
 from vslam.dynamic.datasets import class_index
+from vslam.dynamic.masking import box_intersection, box_iou
 from vslam.dynamic.teacher import TEACHER_THRESHOLD
 from vslam.errors import ConfigError
 
@@ -198,10 +199,8 @@ def _new_boxes(s: Sample, boxes: np.ndarray, names: np.ndarray, keep: dict[str, 
 
 def _covered_fraction(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(N,M): the fraction of box a_i's area inside box b_j."""
-    iw = np.clip(np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None)
-    ih = np.clip(np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None)
     area = np.maximum((a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1]), 1e-12)
-    return iw * ih / area[:, None]
+    return box_intersection(a, b) / area[:, None]
 
 
 def pseudo_label_sources(sources: dict[str, list[Sample]], classes: tuple[str, ...],
