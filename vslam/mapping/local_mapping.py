@@ -117,10 +117,11 @@ class LocalMapper:
         """Insert keyframe ``kf`` whose keypoints matched ``tracked_ids`` (N,) (-1 none). -> ms per step."""
         ms: dict[str, float] = {}
         t = time.perf_counter()
-        for kp in np.flatnonzero(tracked_ids >= 0):
-            pid = int(tracked_ids[kp])
-            if pid in self.map.points:
-                self.map.add_observation(pid, kf.id, int(kp))
+        kps = np.flatnonzero(tracked_ids >= 0)
+        points = self.map.points
+        for kp, pid in zip(kps.tolist(), tracked_ids[kps].tolist()):  # Python ints: cheaper dict lookups
+            if pid in points:
+                self.map.add_observation(pid, kf.id, kp)
         neighbors = self.map.covisible_keyframes(kf.id, 1, max(self.cfg.fuse_neighbors, self.cfg.tri_neighbors))
         new = self.create_depth_points(kf) if self.sensor != "mono" else []
         if self.cfg.triangulate == "all" or (self.cfg.triangulate == "mono" and self.sensor == "mono"):
@@ -166,10 +167,12 @@ class LocalMapper:
             ia, ib = a[m[:, 0]], b[m[:, 1]]
             X, ok = triangulate_points(kf.T_world_cam, nb.T_world_cam, kf.features.uv[ia], nb.features.uv[ib], self.cam.K,
                                        self.cfg.tri_parallax_deg, self.cfg.tri_max_reproj_px)
-            for j in np.flatnonzero(ok):
-                mp = self.map.add_point(X[j], kf.id, int(ia[j]))
-                self.map.add_observation(mp.id, nb_id, int(ib[j]))
-                new.append(mp.id)
+            if ok.any():
+                # ia / ib are distinct free keypoints of kf / nb: the batch calls make what add_point and
+                # add_observation per pair would (same ids, observations in the same order)
+                ids = self.map.add_points(X[ok], kf.id, ia[ok])
+                self.map.add_free_observations(ids, nb_id, ib[ok])
+                new += ids
         return new
 
     def _tri_matches(self, kf: KeyFrame, nb: KeyFrame, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -192,9 +195,9 @@ class LocalMapper:
         """Project ``pids`` into ``target``; attach to free keypoints, merge with duplicates. -> fusions.
         Ids no longer in the map are skipped (loop fusion passes one list to several keyframes, merging as it goes).
         ``gathered``: the points' positions and descriptors, read once for several calls (else read here)."""
-        pids = np.asarray(pids, np.int64)
-        pids = pids[~np.isin(pids, target.point_ids)]  # not already seen by the target
-        pids = self.map.existing(pids)
+        seen, points = set(target.point_ids.tolist()), self.map.points
+        # still in the map and not already seen by the target, in order (one pass over Python ints)
+        pids = np.array([p for p in np.asarray(pids, np.int64).tolist() if p not in seen and p in points], np.int64)
         if len(pids) == 0 or len(target.features) == 0:
             return 0
         g = gathered if gathered is not None else GatheredPoints(self.map, pids)
@@ -205,19 +208,23 @@ class LocalMapper:
             return 0
         pairs = match_by_projection(uv[idx], g.desc[rows[idx]], target.features.uv, target.features.desc,
                                     self.cfg.fuse_radius_px, self.cfg.max_hamming, 1.0)
-        n = 0
-        for pi, kp in pairs:
-            pid = int(pids[idx[pi]])
-            zk = target.depth[kp]
-            if np.isfinite(zk) and abs(zk - z[idx[pi]]) > 0.1 * zk:  # depth disagrees: a different surface
-                continue
-            if pid not in self.map.points or target.id in self.map.points[pid].observations:
+        if len(pairs) == 0:
+            return 0
+        zk = target.depth[pairs[:, 1]]
+        with np.errstate(invalid="ignore"):
+            clash = np.isfinite(zk) & (np.abs(zk - z[idx[pairs[:, 0]]]) > 0.1 * zk)  # depth disagrees: a different surface
+        pairs = pairs[~clash]
+        tid, n = target.id, 0
+        # in pair order: each fusion changes what the next one sees (merges remove points)
+        for pid, kp in zip(pids[idx[pairs[:, 0]]].tolist(), pairs[:, 1].tolist()):
+            mp = points.get(pid)
+            if mp is None or tid in mp.observations:
                 continue
             old = int(target.point_ids[kp])
             if old < 0:
-                self.map.add_observation(pid, target.id, int(kp))
+                self.map.add_observation(pid, tid, kp)
             else:
-                keep, drop = (old, pid) if len(self.map.points[old].observations) >= len(self.map.points[pid].observations) else (pid, old)
+                keep, drop = (old, pid) if len(points[old].observations) >= len(mp.observations) else (pid, old)
                 self.map.merge_points(keep, drop)
             n += 1
         return n
@@ -238,14 +245,16 @@ class LocalMapper:
         """ORB-SLAM MapPointCulling on points created in the last few keyframes."""
         min_obs = self.cfg.cull_min_obs_mono if self.sensor == "mono" else self.cfg.cull_min_obs_depth
         keep: list[int] = []
-        for pid in self.recent:
-            mp = self.map.points.get(pid)
+        points, remove = self.map.points, self.map.remove_point
+        min_ratio, cull_age = self.cfg.cull_found_ratio, self.cfg.cull_age
+        for pid in self.recent:  # thousands of points per RGB-D keyframe: attribute lookups hoisted
+            mp = points.get(pid)
             if mp is None:
                 continue
             age = cur_kf - mp.first_kf
-            if mp.found_ratio < self.cfg.cull_found_ratio or (age >= self.cfg.cull_age and len(mp.observations) < min_obs):
-                self.map.remove_point(pid)
-            elif age < self.cfg.cull_age + 1:
+            if mp.found_ratio < min_ratio or (age >= cull_age and len(mp.observations) < min_obs):
+                remove(pid)
+            elif age < cull_age + 1:
                 keep.append(pid)
         self.recent = keep
 

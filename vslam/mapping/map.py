@@ -8,12 +8,27 @@ keyframes have a few hundred points, so counting is cheap and never stale.
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
+from itertools import chain
 
 import numpy as np
 
 from vslam.features.base import Features
 from vslam.features.matching import descriptor_rows
+
+
+def _argmin_median(dist: np.ndarray) -> np.ndarray:
+    """``np.argmin(np.median(dist, axis=2), axis=1)`` for integer (G,n,n) distances without float medians: the
+    median of n integers is the middle one (n odd) or half the sum of the middle two (n even), both exact, so
+    the middle value (or sum) orders the rows as the medians do, ties (first row wins) included."""
+    h = dist.shape[2] // 2
+    if dist.shape[2] % 2:
+        mid = np.partition(dist, h, axis=2)[:, :, h]
+    else:
+        part = np.partition(dist, (h - 1, h), axis=2)
+        mid = part[:, :, h - 1] + part[:, :, h]
+    return np.argmin(mid, axis=1)
 
 
 @dataclass
@@ -160,12 +175,29 @@ class Map:
         X = np.array(xyz, dtype=np.float64).reshape(-1, 3)
         D = kf.features.desc[kps]  # a copy: the points' descriptors must not follow the keyframe's array
         ids = list(range(self._next_pt, self._next_pt + kps.size))
-        for i, (pid, kp) in enumerate(zip(ids, kps.tolist())):
-            self.points[pid] = MapPoint(pid, X[i], D[i], kf_id, {kf_id: kp})
+        points = self.points
+        for pid, x, d, kp in zip(ids, X, D, kps.tolist()):  # rows of X and D, as X[i] and D[i]
+            points[pid] = MapPoint(pid, x, d, kf_id, {kf_id: kp})
         kf.point_ids[kps] = np.arange(self._next_pt, self._next_pt + kps.size)
         self._next_pt += kps.size
         self.revision += kps.size
         return ids
+
+    def add_free_observations(self, pt_ids: list[int], kf_id: int, kp_idx: np.ndarray) -> None:
+        """``add_observation`` for points not yet seen by ``kf_id`` at distinct keypoints of it that observe
+        nothing (just-triangulated points in their second view): the same bookkeeping without the checks."""
+        kf = self.keyframes[kf_id]
+        kps = np.asarray(kp_idx, np.int64).reshape(-1)
+        if len(pt_ids) != kps.size or np.any(kf.point_ids[kps] >= 0) or np.unique(kps).size != kps.size:
+            raise ValueError(f"add_free_observations: keyframe {kf_id}'s keypoints must be distinct and free")
+        points = self.points
+        for pid, kp in zip(pt_ids, kps.tolist()):
+            obs = points[pid].observations
+            if kf_id in obs:
+                raise ValueError(f"add_free_observations: point {pid} is already seen by keyframe {kf_id}")
+            obs[kf_id] = kp
+        kf.point_ids[kps] = pt_ids
+        self.revision += kps.size
 
     def add_observation(self, pt_id: int, kf_id: int, kp_idx: int) -> None:
         kf, mp = self.keyframes[kf_id], self.points[pt_id]
@@ -232,12 +264,11 @@ class Map:
     # -- queries -------------------------------------------------------------
     def covisibility(self, kf_id: int) -> dict[int, int]:
         """{other keyframe id: number of map points it shares with ``kf_id``}, ordered by id."""
-        counts: dict[int, int] = {}
         kf = self.keyframes[kf_id]
-        for pid in kf.point_ids[kf.point_ids >= 0]:
-            for other in self.points[int(pid)].observations:
-                if other != kf_id:
-                    counts[other] = counts.get(other, 0) + 1
+        points = self.points
+        # Counter counts in C; the keyframe itself is dropped afterwards
+        counts = Counter(chain.from_iterable(points[p].observations for p in kf.point_ids[kf.point_ids >= 0].tolist()))
+        counts.pop(kf_id, None)
         return dict(sorted(counts.items()))
 
     def covisible_keyframes(self, kf_id: int, min_shared: int = 15, limit: int | None = None) -> list[int]:
@@ -266,16 +297,23 @@ class Map:
     def existing(self, ids: np.ndarray) -> np.ndarray:
         """The ids of ``ids`` still in the map, in order (a merge or a cull may have removed some since)."""
         ids = np.asarray(ids, np.int64)
-        return ids[np.fromiter((i in self.points for i in ids.tolist()), bool, len(ids))]
+        return ids[np.fromiter(map(self.points.__contains__, ids.tolist()), bool, len(ids))]
 
     def points_xyz(self, ids: np.ndarray) -> np.ndarray:
         """(len(ids),3) world positions."""
         if len(ids) == 0:
             return np.zeros((0, 3))
-        return np.array([self.points[int(i)].xyz for i in ids], dtype=np.float64)  # np.stack is 5x slower here
+        points = self.points
+        # one concatenation of the (3,) rows: ~2x faster than np.array of the list, np.stack ~2.5x slower
+        return np.concatenate([points[i].xyz for i in np.asarray(ids).tolist()], dtype=np.float64).reshape(-1, 3)
 
     def descriptors(self, ids: np.ndarray) -> np.ndarray:
-        return np.array([self.points[int(i)].descriptor for i in ids])
+        """(len(ids),D) descriptors of points ``ids``."""
+        if len(ids) == 0:
+            return np.array([])
+        points = self.points
+        rows = [points[i].descriptor for i in np.asarray(ids).tolist()]
+        return np.concatenate(rows).reshape(len(rows), -1)  # as np.array(rows), ~2x faster
 
     def update_descriptor(self, pt_id: int) -> None:
         """Representative descriptor: the observation with the smallest median distance to the others (ORB-SLAM)."""
@@ -294,20 +332,23 @@ class Map:
         the same number of observations are compared in one popcount over the group (~10x fewer Python steps)."""
         groups: dict[int, list[int]] = {}
         self.revision += 1
-        for pid in pt_ids:
-            n = len(self.points[int(pid)].observations)
+        points = self.points
+        for pid in np.asarray(pt_ids).tolist():
+            n = len(points[pid].observations)
             if n >= 3:
-                groups.setdefault(n, []).append(int(pid))
+                groups.setdefault(n, []).append(pid)
+        kfs = self.keyframes
         for n, ids in groups.items():
-            D = np.array([self.keyframes[k].features.desc[i] for p in ids for k, i in self.points[p].observations.items()])
-            D = D.reshape(len(ids), n, -1)  # (G, n, D); one array call over the flat list: ~2x faster than nested stacks
+            rows = [kfs[k].features.desc[i] for p in ids for k, i in points[p].observations.items()]
+            # (G, n, D); one concatenation of the flat list of rows: faster than np.array of it or nested stacks
+            D = np.concatenate(rows).reshape(len(ids), n, -1)
             if D.dtype != np.uint8 or D.shape[2] % 8:
                 for p in ids:
                     self.update_descriptor(p)
                 continue
             w = np.ascontiguousarray(D).view(np.uint64)  # (G, n, D/8)
-            dist = np.bitwise_count(w[:, :, None, :] ^ w[:, None, :, :]).sum(axis=3, dtype=np.int64)
-            best = np.argmin(np.median(dist.astype(np.float64), axis=2), axis=1)
+            dist = np.bitwise_count(w[:, :, None, :] ^ w[:, None, :, :]).sum(axis=3, dtype=np.int32)
+            best = _argmin_median(dist)
             for p, row, b in zip(ids, D, best.tolist()):
                 self.points[p].descriptor = row[b].copy()
 
@@ -319,9 +360,11 @@ class Map:
         for k, T in poses.items():
             if k not in fixed:
                 self.keyframes[k].T_world_cam = np.asarray(T, dtype=np.float64)
+        mine, asarray, f64 = self.points, np.asarray, np.float64  # a local BA writes back ~1000 points
         for p, X in points.items():
-            if p in self.points:
-                self.points[p].xyz = np.asarray(X, dtype=np.float64)
+            mp = mine.get(p)
+            if mp is not None:
+                mp.xyz = asarray(X, dtype=f64)
         for i in np.flatnonzero(~np.asarray(inliers, bool)):
             if depth_only is not None and depth_only[i]:  # keep the match as a mono observation
                 mp = self.points.get(int(obs_pt[i]))

@@ -178,11 +178,11 @@ class Tracker:
         # here (synthetic room RGB-D: ATE 0.063 vs 0.017 m), the chi2 gate then lets coarse outliers in.
         return optimize_pose(T, X, feats.uv[kps], ur[kps], self.stereo_cam, self.backend)
 
-    def search_local(self, T: np.ndarray, local: LocalPoints, feats: Features, tree: cKDTree,
-                     radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def search_local(self, T: np.ndarray, local: LocalPoints, feats: Features, tree: cKDTree, radius: float,
+                     seen: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Projection matching of the local map -> (indices into ``local`` of the matched points, keypoint
-        indices, visible mask over ``local``)."""
-        uv, _, vis = project(T, local.xyz, self.cam, self.cfg.min_depth)
+        indices, visible mask over ``local``). ``seen``: (uv, visible) of ``project(T, local.xyz)`` if computed."""
+        uv, vis = seen if seen is not None else self._project(T, local.xyz)
         idx = np.flatnonzero(vis)
         if len(idx) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), vis
@@ -202,13 +202,19 @@ class Tracker:
         self._local = (key, local)
         return local
 
-    def _moved_px(self, T_a: np.ndarray, T_b: np.ndarray, xyz: np.ndarray) -> float:
+    def _moved_px(self, T_a: np.ndarray, T_b: np.ndarray, xyz: np.ndarray,
+                  seen_a: tuple[np.ndarray, np.ndarray] | None = None) -> float:
         """Median image displacement (px) of the points ``xyz`` (P,3) visible from both poses, from ``T_a`` to
-        ``T_b``; 0 when none is."""
-        uv_a, _, vis_a = project(T_a, xyz, self.cam, self.cfg.min_depth)
-        uv_b, _, vis_b = project(T_b, xyz, self.cam, self.cfg.min_depth)
+        ``T_b``; 0 when none is. ``seen_a``: (uv, visible) of ``project(T_a, xyz)`` when already computed."""
+        uv_a, vis_a = seen_a if seen_a is not None else self._project(T_a, xyz)
+        uv_b, vis_b = self._project(T_b, xyz)
         both = vis_a & vis_b
         return float(np.median(np.linalg.norm(uv_b[both] - uv_a[both], axis=1))) if both.any() else 0.0
+
+    def _project(self, T_world_cam: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``project`` -> (uv (P,2), visible (P,))."""
+        uv, _, vis = project(T_world_cam, xyz, self.cam, self.cfg.min_depth)
+        return uv, vis
 
     def _gather(self, ids: np.ndarray) -> LocalPoints:
         return LocalPoints(ids, self.map.points_xyz(ids), self.map.descriptors(ids))
@@ -247,6 +253,7 @@ class Tracker:
         map) + LO-RANSAC PnP, then ``_finish_local``."""
         local = self.local_points(ref_kf)
         sel = np.zeros(0, np.int64)
+        seen = None  # the local map's projection from T_pred, once computed (``_moved_px`` needs it again)
         if last_ids is not None and len(last_ids) >= self.cfg.min_matches:
             ids = self.map.existing(last_ids)  # loop fusion may have merged some
             if len(ids) >= self.cfg.min_matches:
@@ -254,14 +261,15 @@ class Tracker:
                 sel, mk, _ = self.search_local(T_pred, last, feats, tree, radius)
                 X = last.xyz[sel]
         if len(sel) < self.cfg.min_matches:
-            sel, mk, _ = self.search_local(T_pred, local, feats, tree, radius)
+            seen = self._project(T_pred, local.xyz)
+            sel, mk, _ = self.search_local(T_pred, local, feats, tree, radius, seen)
             X = local.xyz[sel]
         if len(sel) < self.cfg.min_matches:
             return None
         T, inl = self.pnp(feats.uv[mk], X)
         if T is None:
             return None
-        far = self.cfg.far_prediction_reference and self._moved_px(T_pred, T, local.xyz) > radius
+        far = self.cfg.far_prediction_reference and self._moved_px(T_pred, T, local.xyz, seen) > radius
         if far:
             # The pose moved the local map farther than the search radius from where the prediction put it: the
             # true matches of most points lay outside their windows, and those found are where the prediction
