@@ -88,7 +88,8 @@ def line_ba_cost(config: str | None, overrides: dict[str, Any], out_dir: str) ->
     solve = local_mapping.local_bundle_adjustment
     cpu: dict[str, list[float]] = {"points": [], "lines": []}
 
-    def both(problem, camera, cfg):
+    def both(problem, camera, cfg, cache=None):
+        # the factor cache is left out: both solves then build their factors, as the comparison needs
         if problem.lines is None:
             return solve(problem, camera, cfg)
         t = time.thread_time()

@@ -222,15 +222,20 @@ class BAResult(_CompactPoints):
     depth_only: np.ndarray | None = None
 
 
-def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: BackendConfig = BackendConfig()) -> BAResult:
-    """Optimise the window's non-fixed poses and all observed points; the steps are in the module docstring."""
+def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: BackendConfig = BackendConfig(),
+                            cache: fx.FactorCache | None = None) -> BAResult:
+    """Optimise the window's non-fixed poses and all observed points; the steps are in the module docstring.
+
+    ``cache``: the caller's ``factors.FactorCache``, whose factors of the previous window are reused where this
+    window has the same observations (the result is the same with or without it; the numpy solver ignores it)."""
     t0 = time.perf_counter()
     win = dense_window(problem, camera, cfg)
     valid = np.isfinite(win.chi2(win.Twc0, win.P0, camera))  # screen: NaN anywhere or behind the camera
     links = problem.usable_links()
+    Twc0 = win.Twc0.copy()  # one copy whose rows the result holds: the window's arrays stay the initial guess
     result = BAResult(
-        poses={k: win.Twc0[i].copy() for i, k in enumerate(win.kf_ids.tolist()) if k not in problem.fixed},
-        points={j: win.P0[i].copy() for i, j in enumerate(win.pt_ids.tolist())},
+        poses={k: Twc0[i] for i, k in enumerate(win.kf_ids.tolist()) if k not in problem.fixed},
+        points=dict(zip(win.pt_ids.tolist(), win.P0.copy())),
         inliers=np.zeros(win.kf.shape[0], dtype=bool),
     )
     if not valid.any() and not links:
@@ -251,8 +256,12 @@ def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: Backe
     used_k = np.union1d(used_k, np.searchsorted(win.kf_ids, sorted(linked))).astype(np.int64)
     if cfg.solver == "numpy" and problem.lines is None and not links and len(used_k) <= NUMPY_MAX_POSES:
         return _local_ba_numpy(problem, camera, cfg, win, valid, closed, idx, used_k, result, t0)
-    builder = fx.FactorBuilder(camera, cfg.huber_k)
-    facs = builder.factors(win.kf[idx], win.pt[idx], win.meas[idx], win.stereo[idx], win.sigma[idx])
+    rows = (win.kf[idx], win.pt[idx], win.meas[idx], win.stereo[idx], win.sigma[idx])
+    if cache is not None:
+        builder, facs = cache.builder(camera, cfg.huber_k), cache.factors(camera, cfg.huber_k, *rows)
+    else:
+        builder = fx.FactorBuilder(camera, cfg.huber_k)
+        facs = builder.factors(*rows)
     anchors = _anchors(problem.fixed, win.kf_ids[used_k].tolist())
     holds = [builder.hold(fx.X(k), problem.poses[k]) for k in anchors]
     holds += [builder.between(ln.a, ln.b, ln.T_a_b, ln.cov) for ln in links]
@@ -289,8 +298,8 @@ def local_bundle_adjustment(problem: BAProblem, camera: StereoCamera, cfg: Backe
         k = int(win.kf_ids[i])
         if k in result.poses and k not in anchors:  # a gauge anchor comes back unchanged
             result.poses[k] = Twc[i]
-    for i in np.union1d(used_p, win.ip[closed]).tolist():
-        result.points[int(win.pt_ids[i])] = P[i]
+    # every point: those not in the graph nor solved in closed form have their initial value in P
+    result.points = dict(zip(win.pt_ids.tolist(), P))
     result.iterations = iters
     result.initial_error = initial_error  # LM evaluated it first thing (same graph and values)
     result.final_error = float(graph.error(est))
@@ -335,8 +344,8 @@ def _local_ba_numpy(problem: BAProblem, camera: StereoCamera, cfg: BackendConfig
         result.depth_only = valid & win.stereo & ~result.inliers & (win.uv_chi2(Twc, P, camera) <= cfg.chi2_mono)
     for i in np.flatnonzero(free).tolist():
         result.poses[int(win.kf_ids[i])] = Twc[i]
-    for i in np.union1d(np.unique(ip), win.ip[closed]).tolist():
-        result.points[int(win.pt_ids[i])] = P[i]
+    moved = np.union1d(ip, win.ip[closed])
+    result.points.update(zip(win.pt_ids[moved].tolist(), P[moved]))
     result.iterations = iters
     result.initial_error = initial_error
     result.final_error = robust_cost(Tcw, P, ik, ip, meas, st, sig, camera, cfg.huber_k)
@@ -448,15 +457,17 @@ def _anchors(fixed: set[int], observed_kf: list[int]) -> list[int]:
 def _initial_values(Twc: np.ndarray, P: np.ndarray, kfs: np.ndarray, pts: np.ndarray) -> gtsam.Values:
     """Values with X(kfs[i]) = Pose3(Twc[i]) and L(pts[i]) = P[i]."""
     values = gtsam.Values()
-    for k, T in zip(kfs.tolist(), Twc):
-        values.insert(fx.X(k), fx.pose3(T))
-    for j, p in zip(pts.tolist(), P):
-        values.insert(fx.L(j), p)
+    for key, T in zip(fx.symbol_keys("x", kfs), Twc):
+        values.insert(key, fx.pose3(T))
+    insert = values.insertPoint3  # the typed insert: no overload resolution per point
+    for key, p in zip(fx.symbol_keys("l", pts), P):
+        insert(key, p)
     return values
 
 
 def _graph(factors: list) -> gtsam.NonlinearFactorGraph:
     graph = gtsam.NonlinearFactorGraph()
+    add = graph.add
     for f in factors:
-        graph.add(f)
+        add(f)
     return graph

@@ -12,7 +12,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
-__all__ = ["L", "X", "FactorBuilder", "pose3", "pose_matrix", "lm_params"]
+__all__ = ["L", "X", "FactorBuilder", "FactorCache", "symbol_keys", "pose3", "pose_matrix", "lm_params"]
 
 #: Fixed keyframes are held by a PriorFactorPose3 of this sigma (rad / m); None -> NonlinearEqualityPose3.
 #: Measured (``python -m tests.backend.bench_ba``, same results either way): NonlinearEquality linearises to
@@ -77,27 +77,119 @@ class FactorBuilder:
         self, kf: np.ndarray, pt: np.ndarray, meas: np.ndarray, stereo: np.ndarray, sigma: np.ndarray
     ) -> list[gtsam.NonlinearFactor]:
         """One factor per row: kf, pt (N,) int ids; meas (N,3) (uL, v, uR); stereo (N,) bool; sigma (N,) px."""
-        if self._bPs is not None:
-            return self._factors_body(kf, pt, meas, stereo, sigma)
         out = []
-        Ks, Km = self.K_stereo, self.K_mono
-        for k, j, (u, v, r), st, s in zip(kf.tolist(), pt.tolist(), meas.tolist(), stereo.tolist(), sigma.tolist()):
+        extra = () if self._bPs is None else (self._bPs,)  # body poses: the camera at body_P_sensor
+        Ks, Km = (self.K_stereo, *extra), (self.K_mono, *extra)
+        stereo_f, mono_f, sp2 = gtsam.GenericStereoFactor3D, gtsam.GenericProjectionFactorCal3_S2, gtsam.StereoPoint2
+        uv = np.ascontiguousarray(meas[:, :2], dtype=np.float64)  # rows: the mono measurement, no array per factor
+        rows = zip(symbol_keys("x", kf), symbol_keys("l", pt), meas.tolist(), uv, stereo.tolist(),
+                   self._row_models(stereo, sigma))
+        for xk, lk, (u, v, r), uv_i, st, model in rows:
             if st:
-                out.append(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, r, v), self.noise(3, s), X(k), L(j), Ks))
+                out.append(stereo_f(sp2(u, r, v), model, xk, lk, *Ks))
             else:
-                out.append(gtsam.GenericProjectionFactorCal3_S2(np.array([u, v]), self.noise(2, s), X(k), L(j), Km))
+                out.append(mono_f(uv_i, model, xk, lk, *Km))
         return out
 
-    def _factors_body(self, kf, pt, meas, stereo, sigma) -> list[gtsam.NonlinearFactor]:
-        """As ``factors`` with the camera at ``body_P_sensor`` of body poses X(k)."""
-        out = []
-        bPs, Ks, Km = self._bPs, self.K_stereo, self.K_mono
-        for k, j, (u, v, r), st, s in zip(kf.tolist(), pt.tolist(), meas.tolist(), stereo.tolist(), sigma.tolist()):
-            if st:
-                out.append(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, r, v), self.noise(3, s), X(k), L(j), Ks, bPs))
-            else:
-                out.append(gtsam.GenericProjectionFactorCal3_S2(np.array([u, v]), self.noise(2, s), X(k), L(j), Km, bPs))
+    def _row_models(self, stereo: np.ndarray, sigma: np.ndarray) -> list[gtsam.noiseModel.Base]:
+        """``noise(3 if stereo else 2, sigma)`` of each row, looked up once per distinct (stereo, sigma)."""
+        if len(sigma) == 0:
+            return []
+        values, inverse = np.unique(np.asarray(sigma, np.float64), return_inverse=True)
+        table = [self.noise(2, s) for s in values.tolist()] + [self.noise(3, s) for s in values.tolist()]
+        code = inverse.reshape(-1) + values.size * np.asarray(stereo, bool)
+        return [table[c] for c in code.tolist()]
+
+
+class FactorCache:
+    """The visual factors of the last window, for the next one: a LocalMapper's consecutive BA windows share most
+    observations. A factor is immutable and fixed by its row (keyframe, point, measurement, stereo flag, sigma)
+    and the builder's camera and Huber threshold, so a reused factor is the one that would be built (the same
+    graph, the same estimate bit for bit). Holds the last window only; pickles as an empty cache (gtsam objects
+    do not travel to a worker process, which keeps its own)."""
+
+    def __init__(self) -> None:
+        self._settings: tuple | None = None
+        self._builder: FactorBuilder | None = None
+        self._forget()
+
+    def __reduce__(self):
+        return (FactorCache, ())
+
+    def __len__(self) -> int:
+        return len(self._factors)
+
+    def builder(self, camera, huber_k: float) -> FactorBuilder:
+        """The builder of these settings (its noise models reused); other settings drop the cached factors."""
+        settings = (camera, float(huber_k))
+        if self._builder is None or self._settings != settings:
+            self._settings, self._builder = settings, FactorBuilder(camera, huber_k)
+            self._forget()
+        return self._builder
+
+    def factors(self, camera, huber_k: float, kf: np.ndarray, pt: np.ndarray, meas: np.ndarray, stereo: np.ndarray,
+                sigma: np.ndarray) -> list[gtsam.NonlinearFactor]:
+        """``FactorBuilder(camera, huber_k).factors(...)``, the rows of the previous call's window reused."""
+        builder = self.builder(camera, huber_k)
+        pair = _pair_keys(kf, pt)
+        row = _row_bits(meas, stereo, sigma)
+        src = self._lookup(pair, row)
+        miss = src < 0
+        new = iter(builder.factors(kf[miss], pt[miss], meas[miss], stereo[miss], sigma[miss]))
+        prev = self._factors
+        out = [prev[s] if s >= 0 else next(new) for s in src.tolist()]
+        self._remember(pair, row, out)
         return out
+
+    def _forget(self) -> None:
+        self._sorted = np.zeros(0, np.int64)  # (kf, point) keys of the cached rows, sorted
+        self._order = np.zeros(0, np.int64)  # their positions in _factors
+        self._rows = np.zeros((0, 5), np.int64)
+        self._factors: list[gtsam.NonlinearFactor] = []
+
+    def _remember(self, pair: np.ndarray | None, row: np.ndarray, factors: list) -> None:
+        if pair is None:
+            self._forget()
+            return
+        self._order = np.argsort(pair, kind="stable")
+        self._sorted, self._rows, self._factors = pair[self._order], row, factors
+
+    def _lookup(self, pair: np.ndarray | None, row: np.ndarray) -> np.ndarray:
+        """(N,) position of each row's factor among the cached ones, -1 where none is (or it differs in any bit)."""
+        src = np.full(row.shape[0], -1, np.int64)
+        if pair is None or self._sorted.size == 0:
+            return src
+        pos = np.minimum(np.searchsorted(self._sorted, pair), self._sorted.size - 1)
+        cand = self._order[pos]
+        hit = (self._sorted[pos] == pair) & (self._rows[cand] == row).all(axis=1)
+        src[hit] = cand[hit]
+        return src
+
+
+def symbol_keys(char: str, ids: np.ndarray) -> list[int]:
+    """``gtsam.Symbol(char, id).key()`` of each id as Python ints (the character is the key's top byte): one numpy
+    pass instead of a ``X`` / ``L`` call per factor."""
+    ids = np.asarray(ids, np.int64).reshape(-1)
+    if ids.size and (ids.min() < 0 or ids.max() >= 1 << 56):
+        shorthand = X if char == "x" else L if char == "l" else None
+        if shorthand is None:
+            raise ValueError(f"symbol_keys: no shorthand for {char!r}")
+        return [shorthand(i) for i in ids.tolist()]  # GTSAM's own error for an id out of range
+    return (np.uint64(ord(char)) << np.uint64(56) | ids.astype(np.uint64)).tolist()
+
+
+def _pair_keys(kf: np.ndarray, pt: np.ndarray) -> np.ndarray | None:
+    """One int64 per (keyframe id, point id), None if an id is out of [0, 2^31) (the cache is then not used)."""
+    kf, pt = np.asarray(kf, np.int64), np.asarray(pt, np.int64)
+    if kf.size and (min(kf.min(), pt.min()) < 0 or max(kf.max(), pt.max()) >= 1 << 31):
+        return None
+    return kf << 31 | pt
+
+
+def _row_bits(meas: np.ndarray, stereo: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """(N,5) int64: the bits of (uL, v, uR, sigma) and the stereo flag, compared exactly (NaN, -0.0 included)."""
+    vals = np.column_stack([np.asarray(meas, np.float64).reshape(-1, 3), np.asarray(sigma, np.float64).reshape(-1)])
+    return np.column_stack([vals.view(np.int64), np.asarray(stereo, np.int64).reshape(-1)])
 
 
 def pose3(T: np.ndarray) -> gtsam.Pose3:

@@ -58,7 +58,7 @@ class DenseWindow:
 def dense_window(problem: BAProblem, camera: StereoCamera, cfg: BackendConfig) -> DenseWindow:
     """Problem -> DenseWindow. Raises ValueError if an observation names an unknown keyframe or point id."""
     kf_ids = np.array(sorted(problem.poses), dtype=np.int64)
-    pt_ids = np.array(sorted(problem.points), dtype=np.int64)
+    pt_ids, P0 = _sorted_points(problem.points)
     kf = np.asarray(problem.obs_kf, dtype=np.int64).reshape(-1)
     pt = np.asarray(problem.obs_pt, dtype=np.int64).reshape(-1)
     m = kf.shape[0]
@@ -78,11 +78,21 @@ def dense_window(problem: BAProblem, camera: StereoCamera, cfg: BackendConfig) -
     Twc0 = np.zeros((kf_ids.size, 4, 4))
     for i, k in enumerate(kf_ids.tolist()):
         Twc0[i] = problem.poses[k]
-    P0 = np.array([problem.points[j] for j in pt_ids.tolist()], dtype=np.float64).reshape(-1, 3)
     return DenseWindow(
         kf_ids, pt_ids, Twc0, P0, kf, pt, ik, ip, meas, stereo,
         np.where(sigma > 0, sigma, np.nan), chi2_thresholds(stereo, cfg.chi2_mono, cfg.chi2_stereo),
     )
+
+
+def _sorted_points(points: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(P,) sorted point ids and (P,3) their positions. Local mapping hands the points in id order: then one
+    array of the dict's values, no lookup per id."""
+    ids = np.fromiter(points.keys(), np.int64, len(points))
+    xyz = np.array(list(points.values()), dtype=np.float64).reshape(-1, 3)
+    if ids.size > 1 and not (ids[1:] > ids[:-1]).all():
+        order = np.argsort(ids)
+        ids, xyz = ids[order], xyz[order]
+    return ids, xyz
 
 
 def _lookup(sorted_ids: np.ndarray, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

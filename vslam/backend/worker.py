@@ -16,6 +16,7 @@ import sys
 
 from vslam import childproc
 from vslam.backend.ba import BackendConfig, BAProblem, BAResult, StereoCamera, local_bundle_adjustment
+from vslam.backend.factors import FactorCache
 
 
 class BAWorker:
@@ -64,13 +65,14 @@ def _serve() -> None:
     """The worker's loop: (problem, camera, cfg) in on stdin -> ("ok", BAResult) | ("error", text) out."""
     out = childproc.result_stream()  # anything the solver prints goes to stderr, not into the result stream
     inp = sys.stdin.buffer
+    cache = FactorCache()  # consecutive windows share most factors (as in the parent's LocalMapper)
     while True:
         try:
             problem, camera, cfg = childproc.receive(inp)  # type: ignore[misc]
         except EOFError:
             return
         try:
-            reply: tuple[str, object] = ("ok", local_bundle_adjustment(problem, camera, cfg))
+            reply: tuple[str, object] = ("ok", local_bundle_adjustment(problem, camera, cfg, cache))
         except Exception as e:  # the parent raises it where it waits
             reply = ("error", f"{type(e).__name__}: {e}")
         childproc.send(out, reply)

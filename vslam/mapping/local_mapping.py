@@ -10,14 +10,17 @@ keyframes with the others that see those points held fixed.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
+from collections import Counter
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 
 from vslam.backend.ba import BackendConfig, BAProblem, StereoCamera, local_bundle_adjustment
+from vslam.backend.factors import FactorCache
 from vslam.backend.worker import BAWorker
 from vslam.data.types import PinholeCamera, SensorKind
 from vslam.features.matching import match_by_projection, match_epipolar, match_mutual
@@ -112,6 +115,7 @@ class LocalMapper:
             self.worker = BAWorker()
             self.worker.start()
         self.pending = None  # (problem, obs keyframes, obs points, fixed) of the worker's BA not yet written back
+        self.factor_cache = FactorCache()  # local BA's factors of the last window, reused by the next
 
     def process(self, kf: KeyFrame, tracked_ids: np.ndarray) -> dict[str, float]:
         """Insert keyframe ``kf`` whose keypoints matched ``tracked_ids`` (N,) (-1 none). -> ms per step."""
@@ -266,7 +270,7 @@ class LocalMapper:
         observations = [self.map.points[p].observations for p in pts.tolist()]
 
         def n_anchored() -> int:
-            return sum(1 for obs in observations if not fixed_set.isdisjoint(obs))
+            return len(observations) - sum(map(fixed_set.isdisjoint, observations))
 
         while n_anchored() < self.cfg.ba_min_anchor_points:
             older = sorted(k for k in window if k != kf_id)
@@ -292,7 +296,7 @@ class LocalMapper:
             self.pending = (problem, okf, opt, fixed)
             return
         else:
-            res = local_bundle_adjustment(problem, self.stereo_cam, self.backend)
+            res = local_bundle_adjustment(problem, self.stereo_cam, self.backend, cache=self.factor_cache)
         self._apply_ba(problem, res, okf, opt, fixed)
 
     def flush(self) -> float:
@@ -324,13 +328,11 @@ class LocalMapper:
         pts = pts[pts >= 0]
         if len(pts) == 0:
             return None
-        fixed_counts: dict[int, int] = {}
-        in_window = set(window)
         points = m.points
-        for pid in pts.tolist():  # Python ints: faster dict lookups than numpy scalars
-            for k in points[pid].observations:
-                if k not in in_window:
-                    fixed_counts[k] = fixed_counts.get(k, 0) + 1
+        # observations of the window points per keyframe (Counter counts in C), then the window's own dropped
+        fixed_counts = Counter(itertools.chain.from_iterable(points[pid].observations for pid in pts.tolist()))
+        for k in window:
+            fixed_counts.pop(k, None)
         fixed = sorted(fixed_counts, key=lambda k: (-fixed_counts[k], k))[: self.cfg.ba_max_fixed]
         first = min(m.keyframes)
         if first in window:  # the first keyframe anchors the gauge (and, monocular, helps hold the scale)
@@ -348,9 +350,12 @@ class LocalMapper:
         # every observation of a window point in a window or fixed keyframe, read from the keyframes' point
         # arrays (the map keeps them equal to the points' observations), ordered by point, then keyframe
         cols: list[tuple] = []
+        member = np.zeros(int(pts[-1]) + 2, bool)  # by point id; the last slot (no window point) takes -1 and beyond
+        member[pts] = True
+        last = member.size - 1
         for k in allk:
             kf = m.keyframes[k]
-            kp = np.flatnonzero(np.isin(kf.point_ids, pts))
+            kp = np.flatnonzero(member[np.where(kf.point_ids < 0, last, np.minimum(kf.point_ids, last))])
             cols.append((np.full(kp.size, k, np.int64), kf.point_ids[kp], kf.features.uv[kp], kf.ur[kp],
                          kf.features.scale_factor ** kf.features.octave[kp].astype(np.float64)))
         okf, opt, ouv, our, osg = (np.concatenate(c) for c in zip(*cols))
@@ -360,7 +365,7 @@ class LocalMapper:
         # (TUM teddy 0.0074 vs 0.0065 m, KITTI 07 mono 0.393 vs 0.387 m; synthetic room 0.0173 vs 0.0189 m),
         # so it is an option, off by default.
         problem = BAProblem({k: m.keyframes[k].T_world_cam for k in allk}, set(fixed),
-                            {int(p): m.points[int(p)].xyz for p in pts.tolist()}, okf, opt,
+                            {p: points[p].xyz for p in pts.tolist()}, okf, opt,
                             ouv.reshape(-1, 2), our.astype(np.float64),
                             obs_sigma=self.backend.pixel_sigma * osg if self.cfg.level_sigma else None,
                             links=links or None)
