@@ -131,12 +131,13 @@ class BackendConfig:
     # value, as before this shortcut. 60-frame tight loop, ATE at 0 / 50 / 100: 0.062 / 0.031 / 0.031 m (seed 1:
     # 0.177 / 0.110 / 0.110 m); TUM teddy BA time the same at 0 and 50.
     closed_form_min_tied: int = 50
-    # Local BA's solver: "gtsam" (the factor graph of ``factors``) or "numpy" (``vslam.backend.schur``: points
-    # eliminated by a dense Schur complement over the window's free poses); the same cost and LM settings, the same
+    # Local BA's solver: "numpy" (``vslam.backend.schur``: points eliminated by a dense Schur complement over the
+    # window's free poses) or "gtsam" (the factor graph of ``factors``); the same cost and LM settings, the same
     # estimates to the LM tolerance per window. Windows with line landmarks or more than NUMPY_MAX_POSES keyframes
-    # (global BA) go to GTSAM either way. numpy is faster (local BA ~0.65x per keyframe on TUM teddy), but not the
-    # default: on the bench it moved the chaotic rows (TUM walkers + detector), some for the worse; docs/backend.md.
-    solver: Literal["gtsam", "numpy"] = "gtsam"
+    # (global BA), and visual-inertial windows, go to GTSAM either way. numpy by default: about half of GTSAM's
+    # CPU per window (GTSAM pays per factor built from Python and per point clique eliminated), with the same
+    # ATE within 5 % on the bench's rows (docs/backend.md).
+    solver: Literal["gtsam", "numpy"] = "numpy"
     pose_rounds: int = 4  # pose-only: optimise / classify rounds (ORB-SLAM2: 4)
     pose_iterations: int = 10  # pose-only: LM iterations per round (ORB-SLAM2: 10)
 
