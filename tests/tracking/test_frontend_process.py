@@ -19,7 +19,9 @@ from vslam.data.synthetic import SyntheticConfig, SyntheticSequence
 from vslam.data.types import Frame
 from vslam.errors import DatasetError
 from vslam.pipeline import Pipeline, PipelineConfig
-from vslam.tracking.frontend_process import (FrontEndProcess, _ram_dir, read_frame_file, remove_stale_folders,
+from vslam.features import FeatureConfig
+from vslam.tracking.frontend_process import (FrontEndProcess, _ram_dir, frame_workers, one_at_a_time,
+                                             ordered_frontends, read_frame_file, remove_stale_folders,
                                              write_frame_file)
 from vslam.tracking.slam import SlamConfig
 
@@ -176,3 +178,105 @@ def test_folders_of_runs_that_died_are_removed_and_live_ones_kept(tmp_path):
     (tmp_path / "vslam-frontend-notapid-x").mkdir()
     assert remove_stale_folders(tmp_path) == [tmp_path / f"vslam-frontend-{dead.pid}-abc"]
     assert sorted(p.name for p in tmp_path.iterdir()) == [f"vslam-frontend-{os.getpid()}-def", "vslam-frontend-notapid-x"]
+
+
+class _SlowTracker:
+    """A front end that takes a random time (frames finish out of order) and records how many run at once."""
+
+    def __init__(self, rng: np.random.Generator, state: dict) -> None:
+        self._rng, self._state = rng, state
+
+    def frontend(self, frame: Frame) -> int:
+        with self._state["lock"]:
+            self._state["running"] += 1
+            self._state["started"] += 1
+            self._state["most"] = max(self._state["most"], self._state["running"])
+            pause = float(self._rng.uniform(0.0, 0.01))
+        threading.Event().wait(pause)
+        with self._state["lock"]:
+            self._state["running"] -= 1
+        if frame.index == self._state.get("fail_at"):
+            raise ValueError(f"frame {frame.index} failed")
+        return frame.index * 10
+
+
+def _frames(n: int) -> list[Frame]:
+    return [Frame(k, float(k), np.zeros((2, 2), np.uint8)) for k in range(n)]
+
+
+def _trackers(n: int, state: dict) -> list[_SlowTracker]:
+    state.update(lock=threading.Lock(), running=0, most=0, started=0)
+    return [_SlowTracker(np.random.default_rng(k), state) for k in range(n)]
+
+
+def test_frames_made_at_once_come_back_in_order_and_stay_within_ahead():
+    state: dict = {}
+    acks = threading.Semaphore(0)  # one per frame taken, as the parent's acknowledgement bytes
+    read = []
+
+    def seq():
+        for f in _frames(40):
+            read.append(f.index)
+            yield f
+
+    out, in_flight, held = [], [], []
+    for item in ordered_frontends(seq(), 30, _trackers(3, state), 5, acks.acquire):
+        in_flight.append(state["started"] - len(out))
+        held.append(len(read) - len(out))
+        out.append(item)
+        acks.release()
+    assert [f.index for f, _ in out] == list(range(30)) and [r for _, r in out] == [10 * k for k in range(30)]
+    assert 1 < state["most"] <= 3 and max(in_flight) <= 5 and max(held) <= 3 + 1 and len(read) == 30
+
+
+def test_a_front_end_error_is_raised_after_the_frames_before_it():
+    state: dict = {"fail_at": 5}
+    got = []
+    with pytest.raises(ValueError, match="frame 5 failed"):
+        for frame, _ in ordered_frontends(_frames(12), 12, _trackers(2, state), 8, lambda: True):
+            got.append(frame.index)
+    assert got == [0, 1, 2, 3, 4]
+
+
+def test_a_reader_error_is_raised_in_its_place_and_a_stopped_parent_ends_the_frames():
+    def seq():
+        yield from _frames(3)
+        raise DatasetError("cam0/3.png", "image does not decode")
+
+    state: dict = {}
+    got = []
+    with pytest.raises(DatasetError, match="does not decode"):
+        for frame, _ in ordered_frontends(seq(), 10, _trackers(2, state), 8, lambda: True):
+            got.append(frame.index)
+    assert got == [0, 1, 2]
+    items = list(ordered_frontends(_frames(10), 10, _trackers(2, state), 2, lambda: False))
+    assert [f.index for f, _ in items[:-1]] == [0, 1] and items[-1] is None
+
+
+def test_workers_default_to_two_for_stereo_without_a_network_and_never_exceed_ahead(monkeypatch):
+    import vslam.tracking.frontend_process as fp
+
+    monkeypatch.setattr(fp, "_cpus", lambda: 2)
+    assert frame_workers(SlamConfig(), "stereo", 8) == 2 and frame_workers(SlamConfig(), "stereo", 1) == 1
+    assert frame_workers(SlamConfig(), "rgbd", 8) == 1
+    assert frame_workers(SlamConfig(frontend_workers=3), "rgbd", 8) == 3
+    assert frame_workers(SlamConfig(features=FeatureConfig(extractor="convpoint")), "stereo", 8) == 1
+    monkeypatch.setattr(fp, "_cpus", lambda: 1)
+    assert frame_workers(SlamConfig(), "stereo", 8) == 1
+
+
+def test_one_at_a_time_reads_after_the_parent_took_frame_k_minus_ahead():
+    state: dict = {}
+    taken = []
+    out = list(one_at_a_time(_frames(10), 6, _trackers(1, state)[0], 2, lambda: taken.append(1) or True))
+    assert [f.index for f, _ in out] == list(range(6)) and [r for _, r in out] == [10 * k for k in range(6)]
+    assert len(taken) == 6 - 2
+    assert list(one_at_a_time(_frames(10), 6, None, 0, lambda: False)) == [None]
+
+
+def test_one_and_two_front_end_workers_give_the_same_run(tmp_path):
+    one = Pipeline(_pc(tmp_path, "one", {"frontend_workers": 1}, n=12)).run()
+    two = Pipeline(_pc(tmp_path, "two", {"frontend_workers": 2}, n=12)).run()
+    traj = "trajectory.tum.txt"
+    assert (tmp_path / "one" / traj).read_bytes() == (tmp_path / "two" / traj).read_bytes()
+    np.testing.assert_array_equal(one.trajectory.poses, two.trajectory.poses)

@@ -75,6 +75,13 @@ class SlamConfig:
     # (docs/speed.md). A sequence that cannot be pickled to the
     # child runs on the thread.
     frontend_process: bool = True
+    # With frontend_process: frames whose front end the child makes at once, a thread and a tracker each, while
+    # another thread reads the sequence. A frame's front end depends on its images alone, so the numbers are the
+    # same for any count. Where tracking is light the front end is what it waits for (EuRoC stereo: ~17 vs ~60 ms
+    # a frame on 2 cores), and one frame at a time left a core idle. 0 = 2 for stereo without a network where the
+    # process may use 2+ CPUs, else 1 (an RGB-D front end keeps ahead alone: TUM ~25 vs ~55 ms; torch's threads
+    # already spread a network over the cores); ``frontend_process.frame_workers``.
+    frontend_workers: int = 0
     # LSD segments on a thread of their own, beside the networks: on a GPU ConvPoint and the detector take ~5 ms
     # each and LSD (CPU) ~19 ms (bench row network-speed-gpu), so in a row the front end costs their sum, side by
     # side the longest. None = when the keypoint network runs on CUDA (the 2-core CPU target has no core to
