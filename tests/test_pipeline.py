@@ -81,7 +81,7 @@ def test_networks_get_the_cores_the_tracking_thread_leaves_and_threads_are_resto
     seq = SyntheticSequence(SyntheticConfig(n_frames=3, width=160, height=120, n_movers=0), sensor="rgbd")
     seen: list[int] = []
     before = torch.get_num_threads()
-    monkeypatch.setattr(pl, "_cpus", lambda: 3)
+    monkeypatch.setattr(pl, "usable_cpus", lambda: 3)
     for front_thread, threads, want in ((True, 0, 2), (False, 0, 3), (True, 1, 1)):
         seen.clear()
         cfg = PipelineConfig.load(None, {"tracker": "slam", "output": {"dir": str(tmp_path), "report": False},

@@ -87,3 +87,11 @@ def peak_rss_mb() -> float:
     the BA worker): an upper bound of what a run held at once, MB (Linux reports KiB)."""
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return (own + resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1024.0
+
+
+def usable_cpus() -> int:
+    """The CPUs this process may run on (containers, taskset restrict them), else the machine's count."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1

@@ -13,7 +13,6 @@ import contextlib
 import csv
 import json
 import logging
-import os
 import pickle
 import queue
 import sys
@@ -26,6 +25,7 @@ from typing import Any, Callable, Iterator, Literal
 import numpy as np
 import yaml
 
+from vslam.childproc import usable_cpus
 from vslam.config import from_dict, load_config, to_dict
 from vslam.data.bag import BagTopics
 from vslam.data.live import LiveConfig, LiveSequence
@@ -238,13 +238,6 @@ def _fmt_stat(col: str, v: object) -> str:
     return str(v)
 
 
-def _cpus() -> int:
-    try:
-        return len(os.sched_getaffinity(0))  # the CPUs this process may run on (containers, taskset)
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
 @contextlib.contextmanager
 def blas_threads(cfg: SlamConfig | None) -> Iterator[None]:
     """numpy's BLAS thread count for a run (``SlamConfig.blas_threads``), restored afterwards."""
@@ -260,7 +253,7 @@ def blas_threads(cfg: SlamConfig | None) -> Iterator[None]:
 def torch_thread_count(cfg: SlamConfig) -> int:
     """``SlamConfig.torch_threads``, or 0 resolved: the CPUs, less one for the tracking thread when the front end
     runs beside it (on a thread or in the child process, which uses the same count)."""
-    return cfg.torch_threads or max(1, _cpus() - (1 if cfg.frontend_thread else 0))
+    return cfg.torch_threads or max(1, usable_cpus() - (1 if cfg.frontend_thread else 0))
 
 
 @contextlib.contextmanager

@@ -254,14 +254,14 @@ def test_a_reader_error_is_raised_in_its_place_and_a_stopped_parent_ends_the_fra
 
 
 def test_workers_default_to_two_for_stereo_without_a_network_and_never_exceed_ahead(monkeypatch):
-    import vslam.tracking.frontend_process as fp
+    from vslam import childproc
 
-    monkeypatch.setattr(fp, "_cpus", lambda: 2)
+    monkeypatch.setattr(childproc, "usable_cpus", lambda: 2)
     assert frame_workers(SlamConfig(), "stereo", 8) == 2 and frame_workers(SlamConfig(), "stereo", 1) == 1
     assert frame_workers(SlamConfig(), "rgbd", 8) == 1
     assert frame_workers(SlamConfig(frontend_workers=3), "rgbd", 8) == 3
     assert frame_workers(SlamConfig(features=FeatureConfig(extractor="convpoint")), "stereo", 8) == 1
-    monkeypatch.setattr(fp, "_cpus", lambda: 1)
+    monkeypatch.setattr(childproc, "usable_cpus", lambda: 1)
     assert frame_workers(SlamConfig(), "stereo", 8) == 1
 
 

@@ -10,10 +10,8 @@ keyframes with the others that see those points held fixed.
 
 from __future__ import annotations
 
-import itertools
 import logging
 import time
-from collections import Counter
 from dataclasses import dataclass
 from typing import Literal
 
@@ -329,8 +327,7 @@ class LocalMapper:
         if len(pts) == 0:
             return None
         points = m.points
-        # observations of the window points per keyframe (Counter counts in C), then the window's own dropped
-        fixed_counts = Counter(itertools.chain.from_iterable(points[pid].observations for pid in pts.tolist()))
+        fixed_counts = m.observers(pts)  # the window's own keyframes dropped below
         for k in window:
             fixed_counts.pop(k, None)
         fixed = sorted(fixed_counts, key=lambda k: (-fixed_counts[k], k))[: self.cfg.ba_max_fixed]

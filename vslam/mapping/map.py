@@ -265,11 +265,14 @@ class Map:
     def covisibility(self, kf_id: int) -> dict[int, int]:
         """{other keyframe id: number of map points it shares with ``kf_id``}, ordered by id."""
         kf = self.keyframes[kf_id]
-        points = self.points
-        # Counter counts in C; the keyframe itself is dropped afterwards
-        counts = Counter(chain.from_iterable(points[p].observations for p in kf.point_ids[kf.point_ids >= 0].tolist()))
+        counts = self.observers(kf.point_ids[kf.point_ids >= 0])
         counts.pop(kf_id, None)
         return dict(sorted(counts.items()))
+
+    def observers(self, pt_ids: np.ndarray) -> Counter:
+        """{keyframe id: how many of the points ``pt_ids`` it observes} (Counter counts in C, not per Python step)."""
+        points = self.points
+        return Counter(chain.from_iterable(points[p].observations for p in np.asarray(pt_ids).tolist()))
 
     def covisible_keyframes(self, kf_id: int, min_shared: int = 15, limit: int | None = None) -> list[int]:
         """Keyframes sharing >= min_shared points with ``kf_id``, most shared first (ties: newest first)."""

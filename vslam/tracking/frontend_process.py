@@ -246,15 +246,8 @@ def frame_workers(cfg: SlamConfig, sensor: SensorKind, ahead: int) -> int:
     n = cfg.frontend_workers
     if n <= 0:
         network = cfg.features.extractor != "orb" or (cfg.dynamic.enabled and cfg.dynamic.source == "detector")
-        n = 2 if sensor == "stereo" and not network and _cpus() >= 2 else 1
+        n = 2 if sensor == "stereo" and not network and childproc.usable_cpus() >= 2 else 1
     return max(1, min(n, ahead))
-
-
-def _cpus() -> int:
-    try:
-        return len(os.sched_getaffinity(0))  # the CPUs this process may run on (containers, taskset)
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 def one_at_a_time(seq: Sequence, n: int, tracker, ahead: int,
