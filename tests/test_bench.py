@@ -126,7 +126,7 @@ def test_ab_rows_over_composites_run_one_grid_point_per_walker_seed(tmp_path, mo
     monkeypatch.setattr(vslam.bench, "_composited", lambda spec, jobs_dir: ("tum", tmp_path / f"walkers-{spec['seed']}"))
     seen = []
 
-    def fake_run_jobs(jobs, workers, ray):
+    def fake_run_jobs(jobs, workers, ray, progress=None):
         seen.extend(jobs)
         return [{"ate_rmse": 0.001 * (i + 1)} for i in range(len(jobs))]
 
@@ -310,6 +310,24 @@ def test_checks_evaluate_values_ratios_to_other_rows_and_paths():
     assert verdict(outs) == "✓" and verdict([]) == "–" and verdict([worse, *outs]) == "✗"
     known = evaluate_check("worse", Check("ate_rmse", "<=", ratio=1.1, of="ref", open="issue 41"), entries)
     assert verdict([known, *outs]) == "✗ (open)" and verdict([known], why=True) == "✗ (open: issue 41)"
+
+
+def test_same_pose_checks_allow_a_relative_tolerance_and_say_both_numbers():
+    """``~=``: rows that must give another row's poses. The same run measured on two machines (0.0039 vs 0.0041 m,
+    5 %) passes a 10 % tolerance; a regression that moves the ATE by a fifth does not."""
+    from vslam.bench_checks import Check, check_text, evaluate_check
+
+    entries = {n: {"result": _run(a)} for n, a in {"ref": 0.0039, "other_machine": 0.0041, "regressed": 0.0047,
+                                                    "better_by_luck": 0.0033}.items()}
+    same = Check("ate_rmse", "~=", of="ref", tol=0.1)
+    assert check_text(same) == "ATE ≈ ref (±10 %)"
+    assert evaluate_check("other_machine", same, entries).status == "pass"
+    missed = evaluate_check("regressed", same, entries)
+    assert missed.status == "miss" and missed.line == "regressed: ate_rmse 0.0047 m vs target ≈ 0.0039 m ±10 % (ATE ≈ ref (±10 %))"
+    assert evaluate_check("better_by_luck", same, entries).status == "miss"  # different poses, whichever way
+    for bad in ({"op": "~=", "of": "ref"}, {"op": "<=", "of": "ref", "tol": 0.1}, {"op": "=~", "of": "ref"}):
+        with pytest.raises(ConfigError, match="op"):
+            Check("ate_rmse", **bad)
 
 
 def test_bench_check_exits_1_on_a_miss_and_0_when_every_miss_is_open(tmp_path, capsys):

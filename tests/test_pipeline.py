@@ -118,3 +118,65 @@ def test_run_limits_numpy_blas_threads_and_the_ba_worker_follows():
     assert counts() == before
     with blas_threads(SlamConfig(blas_threads=0)):
         assert counts() == before
+
+
+def test_alignment_follows_whether_the_scale_is_observed(tmp_path):
+    """align: auto scores a run without metric scale (monocular) with Sim3 and one in metres with SE3, and the
+    report says which; an explicit SE3 on a monocular run is honoured with a note. Catches a monocular ATE that
+    mixes the unknown scale into the error (what an SE3 default did)."""
+    import json
+
+    mono = Pipeline(_cfg(tmp_path / "mono", sensor="mono")).run()
+    assert not mono.metric_scale and mono.eval.alignment.method == "sim3" and "(sim3, scale " in mono.eval.summary()
+    metrics = json.loads(mono.paths["metrics"].read_text())
+    assert metrics["alignment"]["method"] == "sim3" and metrics["run"]["metric_scale"] is False
+    assert "scale not observable (monocular)" in mono.paths["report_md"].read_text()
+    rgbd = Pipeline(_cfg(tmp_path / "rgbd")).run()
+    assert rgbd.metric_scale and rgbd.eval.alignment.method == "se3" and "(se3)" in rgbd.eval.summary()
+    forced = PipelineConfig.load(None, {"tracker": "baseline", "eval": {"align": "se3"},
+                                        "dataset": {"kind": "synthetic", "sensor": "mono", "synthetic": {"n_frames": 40}},
+                                        "output": {"dir": str(tmp_path / "forced")}})
+    se3 = Pipeline(forced).run()
+    assert se3.eval.alignment.method == "se3" and any("without metric scale" in n for n in se3.eval.notes)
+
+
+def test_every_preset_scores_a_monocular_run_with_sim3():
+    """A preset made for depth or stereo, run with --sensor mono, must not force SE3 on it (align: auto)."""
+    from vslam.resources import preset_names, preset_path
+
+    for name in preset_names():
+        cfg = PipelineConfig.load(preset_path(name))
+        assert cfg.eval.resolve_align(monocular=True) == "sim3", name
+        assert cfg.eval.resolve_align(monocular=False) in ("se3", "sim3"), name
+
+
+def test_a_monocular_map_scaled_by_the_imu_is_metric():
+    from vslam.tracking.slam import SlamConfig, SlamTracker
+    from vslam.tracking.vio import VioConfig
+
+    seq = SyntheticSequence(SyntheticConfig(n_frames=2, width=320, height=240, fx=262.5, fy=262.5))
+    st = SlamTracker(seq.calibration, "mono", SlamConfig(inertial=VioConfig(enabled=True)))
+    assert not st.metric_scale  # before the visual-inertial alignment the scale is the two-view map's
+    st.vio.ready = True
+    assert st.metric_scale
+    assert SlamTracker(seq.calibration, "rgbd", SlamConfig()).metric_scale
+
+
+def test_skipped_frames_are_the_holes_the_readers_list_and_a_missing_tail():
+    """Frames a reader could not decode are counted whichever process read them: holes in the indices that
+    reached tracking (a front-end child skips silently for us), the reader's own list, and a tail when reading
+    stopped before the frames asked for. Frames left out on purpose (stride, drop) are not skipped."""
+    from types import SimpleNamespace
+
+    from vslam.pipeline import _skipped_frames
+
+    class Seq(SimpleNamespace):
+        def __len__(self):
+            return 10
+
+    assert _skipped_frames(Seq(skipped=[]), list(range(10)), 10) == []
+    assert _skipped_frames(Seq(skipped=[]), [0, 1, 3, 4], 5) == [2]  # a hole
+    assert _skipped_frames(Seq(skipped=[(9, "x")]), [0, 1, 2], 10) == [3, 4, 5, 6, 7, 8, 9]  # stopped early
+    stride = Seq(skipped=[(4, "bad")], indices=np.array([0, 2, 4, 6, 8]))
+    assert _skipped_frames(stride, [0, 2, 6, 8], 5) == [4]
+    assert _skipped_frames(Seq(skipped=[]), [0, 1, 2], 3) == []  # max_frames: nothing missing

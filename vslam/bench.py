@@ -38,6 +38,7 @@ from vslam.bench_checks import git_commit, measured_on, readme_table, replace_be
 from vslam.childproc import peak_rss_mb
 from vslam.config import deep_merge, from_dict, load_yaml, parse_overrides
 from vslam.errors import ConfigError
+from vslam.progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +59,7 @@ class BenchRow:
     config: str = ""  # pipeline YAML, relative to the suite file's folder's parent (the repo root) or absolute
     set: tuple[str, ...] = ()  # KEY=VALUE overrides
     note: str = ""
-    target: str = ""  # the number the issue asks for, in words (default: the checks written out)
+    target: str = ""  # the number the row must reach, in words (default: the checks written out)
     check: tuple[Check, ...] = ()  # the target as machine checks (vslam.bench_checks), verdicts computed from the sidecar
     headline: str = ""  # non-empty: a row of the README's results table, this its short "what it measures"
     experiment: str = ""  # kind "fusion": a key of vslam.fusion.experiments.EXPERIMENTS
@@ -86,8 +87,9 @@ def _job_run(config: str | None, overrides: dict[str, Any], out_dir: str) -> dic
     cfg = PipelineConfig.load(config, deep_merge(overrides, {"output": {"dir": out_dir}}))
     shutil.rmtree(out_dir, ignore_errors=True)  # the row's own folder: its previous run goes without a warning
     res = Pipeline(cfg).run()
-    row: dict[str, Any] = {"frames": len(res.trajectory), "tracked": int(res.tracked.sum()), "fps": res.fps,
-                           "ms_per_frame": 1e3 * res.seconds / max(1, len(res.trajectory))}
+    # frames: posed (trajectory lines); frames_read: every frame the run took, posed or not
+    row: dict[str, Any] = {"frames": len(res.trajectory), "frames_read": res.n_frames, "tracked": int(res.tracked.sum()),
+                           "fps": res.fps, "ms_per_frame": 1e3 * res.seconds / max(1, len(res.trajectory))}
     if res.eval is not None:
         row["ate_rmse"] = res.eval.ate.translation.rmse
         row["align"] = res.eval.alignment.method
@@ -421,13 +423,15 @@ def _json_safe(v: Any) -> Any:
 
 def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[str] | None = None,
               jobs_dir: Path = Path("runs/bench"), workers: int = 1, ray: str | None = None,
-              sweep: dict[str, list[Any]] | None = None, readme: Path | None = None) -> Path:
+              sweep: dict[str, list[Any]] | None = None, readme: Path | None = None,
+              progress: Progress | None = None) -> Path:
     """Run the suite's rows (or those named in ``only``), merge with the rows kept in the sidecar
     ``output.with_suffix('.json')`` and rewrite ``output`` with every row of the suite measured so far.
 
     workers > 1 / ray: the jobs of all rows go out together (``vslam.batch.run_jobs``). sweep {KEY: [values]}:
     each selected row once per value, as rows ``NAME[KEY=V]`` of a suite of their own (nothing kept). readme: also
-    rewrite that file's results table of headline rows (``write_readme_table``; not for a sweep)."""
+    rewrite that file's results table of headline rows (``write_readme_table``; not for a sweep). progress(done,
+    total): jobs ended, of all the jobs the rows run."""
     from vslam.batch import Job, ab_jobs, ab_result, batch_row, run_jobs
 
     suite = load_suite(suite_path)
@@ -469,7 +473,7 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
         else:  # a place / features row is deterministic and reports no timing that repeats would steady
             n = 1 if row.kind in SINGLE_RUN_KINDS else max(1, repeat)
             plan.append((row, [Job(row.kind, cfg, over, str(jobs_dir / f"{row.name}-{i}")) for i in range(n)]))
-    results = iter(run_jobs([j for _, jobs in plan for j in jobs], workers, ray))
+    results = iter(run_jobs([j for _, jobs in plan for j in jobs], workers, ray, progress))
     parallel = {"parallel": workers if ray is None else f"ray:{workers}"} if workers > 1 or ray is not None else {}
     for row, jobs in plan:
         done = [next(results) for _ in jobs]
@@ -681,8 +685,8 @@ def _targets_table(entries: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
         return []
     by_name = entries_by_name(entries)
     lines = md_section("Targets", "Each row's checks (configs/bench.yaml `check:`) evaluated on the tables above: "
-                       "✓ every check met, ✗ one missed, ✗ (open) only known misses (each says why: the issue that "
-                       "tracks it, or that the row needs re-measuring), – a target in words only. `vslam bench --check` fails on a miss that is not open. Commit: the code the row "
+                       "✓ every check met, ✗ one missed, ✗ (open) only known misses (each says why: what is "
+                       "missing, or that the row needs re-measuring), – a target in words only. `vslam bench --check` fails on a miss that is not open. Commit: the code the row "
                        "was measured with (– before commits were recorded).",
                        ["row", "target", "measured", "✓/✗", "measured (date, commit)"])
     for row, e in rows:
@@ -696,7 +700,8 @@ def _measured_cell(o: Outcome) -> str:
     """``ATE 0.0041 m (≤ 0.0045 m) ✓`` for one check."""
     label = METRICS[o.check.metric].label if o.check.metric in METRICS else o.check.metric
     got = fmt_value(o.check.metric, o.measured) if o.measured is not None else (o.why or "–")
-    bound = "" if o.bound is None else f" ({OP_TEXT[o.check.op]} {fmt_value(o.check.metric, o.bound)})"
+    tol = f" ±{100 * o.check.tol:g} %" if o.check.op == "~=" else ""
+    bound = "" if o.bound is None else f" ({OP_TEXT[o.check.op]} {fmt_value(o.check.metric, o.bound)}{tol})"
     mark = {"pass": PASS, "fixed": PASS, "miss": MISS, "known": f"{MISS} open: {o.check.open}"}.get(o.status, "–")
     return f"{label} {got}{bound} {mark}"
 
@@ -715,7 +720,7 @@ def _imu_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     """Issue 8 real-IMU numbers: one line per window length, then the static-window line per row."""
     if not rows:
         return []
-    lines = md_section("IMU preintegration on real data (issue 8)",
+    lines = md_section("IMU preintegration on real data",
                        "Windows start at ground-truth states (pose, velocity, biases); error of the predicted end pose; "
                        "NEES of rotation + position against the pim's covariance (6 dof: consistent ≈ 6).",
                        ["row", "window s", "windows", "position RMSE m", "rotation RMSE °", "predicted σ_p m",
@@ -772,7 +777,7 @@ def _place_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     """Issue 7 retrieval: recall@k per evaluation set and descriptor, then the database cost at 10k keyframes."""
     if not rows:
         return []
-    lines = md_section("Place recognition (issue 7)",
+    lines = md_section("Place recognition",
                        "A query counts when the database holds a frame of the same place; recalled at k when one of its k "
                        "most similar database frames is one. BoW: tf-idf of 512 ORB words on the tracker's keypoints (full "
                        "image); VLADNet: vslam/models/vladnet_v1.pt on the image (its model card says what it was trained on: not "
@@ -809,14 +814,14 @@ def _features_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     """Issue 4: the homography benchmark and epipolar inliers, ConvPoint vs ORB vs SIFT in one run."""
     from vslam.features.evaluate import format_table
 
-    return _report_tables(rows, "## Keypoints: ConvPoint vs ORB vs SIFT (issue 4, `{name}`)", format_table)
+    return _report_tables(rows, "## Keypoints: ConvPoint vs ORB vs SIFT (`{name}`)", format_table)
 
 
 def _detector_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     """Issue 5: detectors on the held-out sets (the attention ablation: one recipe, one seed)."""
     from vslam.dynamic.evaluate import format_table
 
-    return _report_tables(rows, "## Dynamic-object detector (issue 5, `{name}`)", format_table)
+    return _report_tables(rows, "## Dynamic-object detector (`{name}`)", format_table)
 
 
 def _eval_detector_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
@@ -829,7 +834,7 @@ def _eval_detector_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[st
             out += ["", f"{name} ({rep['images']} images):", "", *format_report(rep, name)]
         return out
 
-    return _report_tables(rows, "## Detector on real photos (issue 40, `{name}`)", tables)
+    return _report_tables(rows, "## Detector on real photos (`{name}`)", tables)
 
 
 def _speed_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
@@ -839,7 +844,7 @@ def _speed_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     if not rows:
         return []
     done = [(row.name, r) for row, r in rows if "ms" in r]
-    lines = ["", "## Learned front end, ms per 640x480 frame by device (issue 10)", "",
+    lines = ["", "## Learned front end, ms per 640x480 frame by device", "",
              "ConvPoint keypoints, the detector's mask step (detect + keypoints in boxes), LSD lines (CPU), VLADNet "
              "(per keyframe); front_end = the first three as the SLAM front-end thread runs them (in a row on the CPU; "
              "on CUDA LSD runs on a thread beside the networks). Medians over TUM teddy frames.", ""]
@@ -855,7 +860,7 @@ def _line_ba_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     """Issue 6: back-end CPU of lines, each local BA solved without and with its lines (``profiling.line_ba_cost``)."""
     if not rows:
         return []
-    lines = md_section("Back-end cost of lines (issue 6, `line_ba`)",
+    lines = md_section("Back-end cost of lines (`line_ba`)",
                        "A SLAM run with lines in which every local BA that has lines is solved twice on the same window: "
                        "without its lines, then with them (the run goes on with the latter). CPU ms of the solving thread "
                        "per BA, and the ratio of the sums; free of the load and keyframe differences between two runs.",

@@ -18,44 +18,43 @@ import signal
 import sys
 import traceback
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from vslam import __version__
 from vslam.errors import ConfigError, VslamError
-
-
-def _progress_bar(desc: str) -> tuple[Callable[[int, int], None], Callable[[], None]]:
-    from tqdm import tqdm
-
-    bar: dict[str, Any] = {}
-
-    def update(done: int, total: int) -> None:
-        if "b" not in bar:
-            bar["b"] = tqdm(total=total or None, desc=desc, unit="frame", leave=False, disable=None)  # 0: live
-        bar["b"].n = done
-        bar["b"].refresh()
-
-    def close() -> None:
-        if "b" in bar:
-            bar["b"].close()
-
-    return update, close
+from vslam.progress import progress_bar
 
 
 def _summary(result: Any, out: Path) -> None:
+    """What the run did, then what its number scores: with several maps the whole picture comes first and the
+    headline ATE is labelled as the largest map's, so the line a reader copies says what it covers."""
     dropped = f", {result.dropped} dropped by the live queue" if getattr(result, "dropped", None) is not None else ""
-    print(f"frames: {len(result.trajectory)} ({int(result.tracked.sum())} tracked), {result.fps:.1f} frames/s{dropped}")
+    n, posed = result.n_frames, len(result.trajectory)
+    unposed = f", {n - posed} without a pose" if posed < n else ""
+    skipped = result.skipped
+    if skipped:
+        shown = ", ".join(map(str, skipped[:5])) + (", ..." if len(skipped) > 5 else "")
+        unposed += f", {len(skipped)} skipped (did not decode: frame {shown})"
+    print(f"frames: {n} read, {posed} posed ({int(result.tracked.sum())} tracked){unposed}; "
+          f"{result.fps:.1f} frames/s{dropped}")
     print(f"trajectory: {result.paths.get('trajectory_tum', out)}")
-    if result.eval is not None:
-        if result.map_evals:  # tracking was lost and the maps never met: each is scored in its own frame
-            print(f"{len(result.map_evals)} maps never merged; the report scores the one with most frames")
-            for m, e in sorted(result.map_evals.items()):
-                print(f"  map {m}: {e.ate.translation.n} poses, {e.summary()}")
-        print(result.eval.summary())
-        if "report_html" in result.paths:
-            print(f"report: {result.paths['report_html']}")
+    if result.eval is None:
+        print(f"not evaluated: {result.eval_skipped}" if result.eval_skipped else "no ground truth: trajectory not evaluated")
+        return
+    if result.scored_map is not None:  # tracking was lost and the maps never met: each is scored in its own frame
+        maps = result.maps_summary()
+        print(f"{len(maps)} maps, never merged; posed {posed} of {n} frames; each map aligned on its own:")
+        for m in maps:
+            e = result.map_evals.get(m["map"])
+            score = "not scored (fewer than 3 poses)" if e is None else e.ate_text() + (
+                f", {e.n_matched} matched to ground truth" if e.n_matched < m["poses"] else "")
+            print(f"  map {m['map']}: {m['poses']} poses, {score}")
+        main = next(m for m in maps if m["map"] == result.scored_map)
+        print(f"largest map only (map {result.scored_map}, {main['poses']} of {n} frames): {result.eval.summary()}")
     else:
-        print("no ground truth: trajectory not evaluated")
+        print(result.eval.summary())
+    if "report_html" in result.paths:
+        print(f"report: {result.paths['report_html']}")
 
 
 def _reclaim_sigterm() -> None:
@@ -122,11 +121,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         # made for one dataset kind keeps it, and a folder of another layout is an error (open_dataset).
         cfg = dataclasses.replace(cfg, dataset=dataclasses.replace(cfg.dataset, kind="auto"))
     _announce_viewer(cfg)
-    update, close = _progress_bar("tracking")
-    try:
-        result = Pipeline(cfg).run(progress=update)
-    finally:
-        close()
+    with progress_bar("tracking", quiet=args.quiet) as bar:
+        result = Pipeline(cfg).run(progress=bar)
     _summary(result, Path(cfg.output.dir))
     if result.error is not None:  # the outputs are written; what they lack (evaluation, a tracked pose) is an error
         raise result.error
@@ -147,11 +143,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
                                                 "output": {"dir": args.out}}, _viewer_overrides(args)))
     print(f"vslam {__version__} demo: built-in synthetic room (RGB-D, 3 moving boxes, not masked yet), SLAM tracker")
     _announce_viewer(cfg)
-    update, close = _progress_bar("demo")
-    try:
-        result = Pipeline(cfg).run(progress=update)
-    finally:
-        close()
+    with progress_bar("demo", quiet=args.quiet) as bar:
+        result = Pipeline(cfg).run(progress=bar)
     _summary(result, Path(args.out))
     return 0
 
@@ -222,8 +215,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.render:
         out = render_bench(args.suite, output, readme)
     else:
-        out = run_bench(args.suite, output, repeat=args.repeat, only=args.only, jobs_dir=Path(args.runs),
-                        workers=args.jobs, ray=args.ray, sweep=sweep, readme=readme)
+        with progress_bar("bench", unit="job", quiet=args.quiet) as bar:
+            out = run_bench(args.suite, output, repeat=args.repeat, only=args.only, jobs_dir=Path(args.runs),
+                            workers=args.jobs, ray=args.ray, sweep=sweep, readme=readme, progress=bar)
     print(f"wrote {out}")
     return 0
 
@@ -232,6 +226,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="vslam", description="Visual(-inertial) SLAM with honest evaluation.")
     p.add_argument("--version", action="version", version=f"vslam {__version__}")
     p.add_argument("-v", "--verbose", action="count", default=0, help="-v info, -vv debug logging")
+    p.add_argument("-q", "--quiet", action="store_true", help=QUIET_HELP)
     sub = p.add_subparsers(dest="cmd", required=True)
 
     r = sub.add_parser("run", help="run on a dataset sequence (or the synthetic default)")
@@ -242,12 +237,14 @@ def build_parser() -> argparse.ArgumentParser:
                                         "(docs/inputs.md); relative paths also tried under $VSLAM_DATA")
     r.add_argument("--live", metavar="SOURCE", help="live input: camera index (0), stream URL (rtsp://...), realsense[:SERIAL] "
                                                    "or a video file replayed at its rate; --camera gives the intrinsics")
-    r.add_argument("--kind", choices=["auto", "tum", "kitti", "euroc", "synthetic", "images", "video", "bag"])
+    r.add_argument("--kind", choices=["auto", "tum", "kitti", "euroc", "synthetic", "images", "video", "bag"],
+                   help="how to read --data (default: the config's; with --data, auto: detected from its layout)")
     r.add_argument("--camera", help="camera file (camera.yaml or ORB-SLAM3 settings) of an image folder, video or bag")
     r.add_argument("--times", help="frame times of an image folder or video: one timestamp per line")
     r.add_argument("--fps", type=float, help="frame rate of an image folder or video (times = index / fps)")
-    r.add_argument("--sensor", choices=["rgbd", "stereo", "mono"])
-    r.add_argument("--max-frames", type=int)
+    r.add_argument("--sensor", choices=["rgbd", "stereo", "mono"],
+                   help="which images the tracker uses: colour + depth, a stereo pair, or one camera (default: the config's)")
+    r.add_argument("--max-frames", type=int, metavar="N", help="stop after the first N frames")
     r.add_argument("--out", "-o", help="output folder (default from config: runs/latest)")
     r.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field, e.g. odometry.n_features=2000")
     r.add_argument("--profile", action="store_true", help="print ms per stage and peak memory (also profile.json)")
@@ -256,19 +253,23 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(fn=cmd_run)
 
     d = sub.add_parser("demo", help="run the built-in synthetic sequence end to end")
-    d.add_argument("--out", "-o", default="runs/demo")
-    d.add_argument("--frames", type=int, default=300)
+    d.add_argument("--out", "-o", default="runs/demo", help="output folder (default: %(default)s)")
+    d.add_argument("--frames", type=int, default=300, help="frames of the synthetic room to run (default: %(default)s)")
     _add_viewer_args(d)
     d.set_defaults(fn=cmd_demo)
 
     sub.add_parser("presets", help="list the shipped configs (presets) with what each runs").set_defaults(fn=cmd_presets)
 
     e = sub.add_parser("eval", help="ATE/RPE/KITTI metrics of an estimate against ground truth")
-    e.add_argument("est")
-    e.add_argument("gt")
-    e.add_argument("--est-format", default="auto", choices=["auto", "tum", "kitti", "euroc"])
-    e.add_argument("--gt-format", default="auto", choices=["auto", "tum", "kitti", "euroc"])
-    e.add_argument("--align", default="auto", choices=["auto", "se3", "sim3", "none"])
+    e.add_argument("est", help="the estimated trajectory (TUM, KITTI or EuRoC file)")
+    e.add_argument("gt", help="the ground-truth trajectory (TUM, KITTI or EuRoC file)")
+    e.add_argument("--est-format", default="auto", choices=["auto", "tum", "kitti", "euroc"],
+                   help="file format of the estimate (default auto: guessed from the file)")
+    e.add_argument("--gt-format", default="auto", choices=["auto", "tum", "kitti", "euroc"],
+                   help="file format of the ground truth (default auto: guessed from the file)")
+    e.add_argument("--align", default="auto", choices=["auto", "se3", "sim3", "none"],
+                   help="alignment of the estimate to the ground truth before scoring (default auto: sim3 with --mono, "
+                        "else se3)")
     e.add_argument("--mono", action="store_true", help="monocular estimate: auto alignment becomes Sim3")
     e.add_argument("--max-diff", type=float, default=0.02, help="timestamp association tolerance, seconds")
     e.add_argument("--times", "--est-times", dest="est_times", metavar="FILE",
@@ -278,16 +279,17 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(fn=cmd_eval)
 
     s = sub.add_parser("synth", help="write a synthetic sequence in TUM and EuRoC layouts")
-    s.add_argument("out")
+    s.add_argument("out", help="output folder (rgbd/ in the TUM layout, mav0/ in the EuRoC one)")
     s.add_argument("--config", "-c", help="YAML with SyntheticConfig fields (or a pipeline config)")
-    s.add_argument("--frames", type=int)
-    s.add_argument("--seed", type=int)
-    s.add_argument("--scene", choices=["room", "street", "corridor"])
-    s.add_argument("--set", action="append", metavar="KEY=VALUE")
+    s.add_argument("--frames", type=int, metavar="N", help="number of frames (default: the config's, else 300)")
+    s.add_argument("--seed", type=int, help="random seed of the scene, its textures and movers (default: the config's, else 0)")
+    s.add_argument("--scene", choices=["room", "street", "corridor"], help="the world to render (default: the config's, else room)")
+    s.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a SyntheticConfig field, e.g. n_movers=0 (repeatable)")
     s.set_defaults(fn=cmd_synth)
 
     b = sub.add_parser("bench", help="run the benchmark suite and rewrite BENCHMARKS.md")
-    b.add_argument("--suite", default="configs/bench.yaml")
+    b.add_argument("--suite", default="configs/bench.yaml", help="YAML listing the rows and their targets (default: %(default)s)")
     b.add_argument("--output", default=None, help="default BENCHMARKS.md (with --sweep: runs/bench/sweep.md)")
     b.add_argument("--runs", default="runs/bench", help="where each job's outputs go")
     b.add_argument("--repeat", type=int, default=1, help="runs per row (median and spread reported)")
@@ -332,7 +334,21 @@ def build_parser() -> argparse.ArgumentParser:
     from vslam.dynamic.eval_detector import add_cli as add_eval_detector_cli
 
     add_eval_detector_cli(sub)
+    _add_quiet(p)
     return p
+
+
+QUIET_HELP = "no progress bar (one shows on stderr only when it is a terminal; VSLAM_PROGRESS=0 also turns it off)"
+
+
+def _add_quiet(parser: argparse.ArgumentParser) -> None:
+    """-q after any subcommand too (``vslam run -q`` as well as ``vslam -q run``), also on those that other modules
+    add. SUPPRESS: a subcommand given no -q leaves the value parsed before it."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sp in {id(sp): sp for sp in action.choices.values()}.values():  # an alias names the same parser
+                sp.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS, help=QUIET_HELP)
+                _add_quiet(sp)
 
 
 class Terminated(KeyboardInterrupt):

@@ -112,10 +112,46 @@ class RunResult:
     map_evals: dict[int, EvalResult] = field(default_factory=dict)
     eval_groundtruth: Trajectory | None = None  # what ``eval`` was measured against
     dropped: int | None = None  # live input: frames its queue dropped (stats.csv ``dropped``); None: recorded input
+    # the trajectory is in metres (depth, stereo, an IMU-scaled monocular map); False: scored with Sim3
+    metric_scale: bool = True
+    # the map ``eval`` scores when maps were never merged (the one with most poses); None: the whole run
+    scored_map: int | None = None
+    # why ground truth was found but not used (too few poses to align), for the summary
+    eval_skipped: str = ""
+    # indices of the frames the reader could not decode (skipped with a warning; no stats.csv row)
+    skipped: list[int] = field(default_factory=list)
 
     @property
     def fps(self) -> float:
         return len(self.trajectory) / self.seconds if self.seconds > 0 else float("nan")
+
+    @property
+    def n_frames(self) -> int:
+        """Frames the run read (a row each in stats.csv), posed or not."""
+        return len(self.stats)
+
+    def maps_summary(self) -> list[dict[str, Any]]:
+        """One entry per final map, largest first: id, poses, and its own ATE when it was scored."""
+        ids = self.map_ids if self.map_ids is not None else np.zeros(len(self.trajectory), np.int64)
+        maps, counts = np.unique(ids, return_counts=True)
+        out = []
+        for m, n in sorted(zip(maps.tolist(), counts.tolist()), key=lambda mn: (-mn[1], mn[0])):
+            e = self.map_evals.get(m) if self.map_evals else (self.eval if len(maps) == 1 else None)
+            entry: dict[str, Any] = {"map": int(m), "poses": int(n), "tracked": int(np.sum(self.tracked[ids == m]))}
+            if e is not None:
+                entry.update(ate_rmse=e.ate.translation.rmse, align=e.alignment.method, scale=e.alignment.s,
+                             matched=e.n_matched)
+            out.append(entry)
+        return out
+
+    def run_summary(self) -> dict[str, Any]:
+        """The whole run in numbers (``metrics.json`` ``run``): frames read, posed, tracked, the maps, and what
+        the headline ATE scores."""
+        n, posed = self.n_frames, len(self.trajectory)
+        return {"frames": n, "skipped": len(self.skipped), "posed": posed, "posed_fraction": posed / n if n else 0.0,
+                "tracked": int(self.tracked.sum()), "metric_scale": self.metric_scale,
+                "scored": "whole run" if self.scored_map is None else f"largest map ({self.scored_map})",
+                "scored_map": self.scored_map, "maps": self.maps_summary()}
 
 
 def open_dataset(cfg: DatasetConfig) -> Sequence:
@@ -287,6 +323,22 @@ def _frontend_process(seq: Sequence, n: int, cfg: PipelineConfig):
         return None
 
 
+def _skipped_frames(seq: Sequence, received: list[int], n_total: int) -> list[int]:
+    """Indices of the frames the run should have read but the reader skipped (they did not decode): the holes in
+    the indices received, the reader's own list, and the missing tail when the reading stopped early. The holes
+    count too because a front-end process reads (and skips) in a child, whose list is not ours."""
+    expected = np.asarray(getattr(seq, "indices", np.arange(len(seq))), np.int64)
+    got = set(received)
+    last = max(received) if received else -1
+    holes = {int(i) for i in expected[expected <= last] if int(i) not in got}
+    wanted = set(expected.tolist())
+    holes |= {int(i) for i, _ in getattr(seq, "skipped", []) if int(i) not in got and int(i) in wanted}
+    missing = n_total - len(received) - len(holes)
+    if missing > 0:  # the reading stopped before the frames it was asked for: the rest did not decode
+        holes |= set(expected[expected > last][:missing].tolist())
+    return sorted(holes)
+
+
 class Pipeline:
     """``Pipeline(config).run(sequence)``: the Python API behind ``vslam run``."""
 
@@ -298,25 +350,32 @@ class Pipeline:
         own (``RunResult.map_evals``, ``report/maps.json``); the report's headline is the map with most frames."""
         cfg = self.config
         gt = seq.groundtruth()
-        if gt is None or len(traj) < 3:
+        if gt is None:
+            return
+        if len(traj) < 3:
+            result.eval_skipped = f"ground truth found, but {len(traj)} pose(s) are too few to align (at least 3)"
             return
         result.paths["groundtruth"] = write_trajectory(out / "groundtruth.tum.txt", gt, "tum")
         result.eval_groundtruth = gt
-        mono = cfg.dataset.sensor == "mono"
+        # auto alignment: Sim3 where the scale is not observed (monocular without an IMU-scaled map), else SE3
+        unscaled = not result.metric_scale
         ids = result.map_ids if result.map_ids is not None else np.zeros(len(traj), np.int64)
         maps, counts = np.unique(ids, return_counts=True)
         if len(maps) > 1:
             for m, n in zip(maps.tolist(), counts.tolist()):
                 if n >= 3:
                     try:
-                        result.map_evals[m] = evaluate(traj.subset(np.flatnonzero(ids == m)), gt, cfg.eval, monocular=mono)
+                        result.map_evals[m] = evaluate(traj.subset(np.flatnonzero(ids == m)), gt, cfg.eval,
+                                                       monocular=unscaled)
                     except VslamError as e:  # a map too short to align: said, not fatal
                         log.warning("map %d (%d frames) not evaluated: %s", m, n, e)
             main = int(maps[np.argmax(counts)])
+            result.scored_map = main
             traj = traj.subset(np.flatnonzero(ids == main))
-        result.eval = evaluate(traj, gt, cfg.eval, monocular=mono)
+        result.eval = evaluate(traj, gt, cfg.eval, monocular=unscaled)
         if cfg.output.report:
-            result.paths.update(write_report(result.eval, out / "report", title=f"vslam run: {seq.name}"))
+            result.paths.update(write_report(result.eval, out / "report", title=f"vslam run: {seq.name}",
+                                             run=result.run_summary(), maps=result.map_evals))
             if result.map_evals:
                 result.paths["report_maps"] = write_text(out / "report" / "maps.json", json.dumps(
                     {str(m): {"frames": int(np.sum(ids == m)), **e.to_dict()} for m, e in result.map_evals.items()},
@@ -503,6 +562,9 @@ class Pipeline:
         result = RunResult(traj, np.array(tracked, bool), stats, None, paths, seconds)
         result.map_ids = final_ids
         result.dropped = n_dropped if live else None
+        result.metric_scale = bool(odo.metric_scale)
+        if not live:
+            result.skipped = _skipped_frames(seq, [int(r["index"]) for r in stats], n_total)
         if stats and not any(tracked):
             # no map was ever made (or only predicted poses): not a result, whatever was written
             result.error = TrackingError(

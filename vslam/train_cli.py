@@ -15,7 +15,7 @@ def add_train_parser(train_sub: argparse._SubParsersAction, name: str, help: str
     p.add_argument("--out", "-o", help=f"output folder ({outputs})")
     p.add_argument("--toy", action="store_true", help="tiny CPU smoke run of the whole recipe")
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
-    p.add_argument("--device", choices=["auto", "cpu", "cuda"])
+    p.add_argument("--device", choices=["auto", "cpu", "cuda"], help="where to train (default: the config's; auto: CUDA when there is one)")
     p.set_defaults(fn=fn)
     return p
 

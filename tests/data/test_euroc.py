@@ -51,7 +51,9 @@ accelerometer_random_walk: 3.0000e-3
 
 
 def _cam_yaml(i: int, model: str = "radial-tangential", coeffs: str = "[-0.28, 0.07, 0.0002, 1.8e-05]") -> str:
-    return CAM_YAML.format(i=i, T=[T_BS0, T_BS1][i], w=W, h=H, model=model, coeffs=coeffs)
+    # V1_01's intrinsics scaled to the 8x6 images (the principal point must lie inside them)
+    return CAM_YAML.format(i=i, T=[T_BS0, T_BS1][i], w=W, h=H, model=model, coeffs=coeffs).replace(
+        "458.654, 457.296, 367.215, 248.375", "4.58654, 4.57296, 3.67215, 2.48375")
 
 
 def make_euroc(root: Path, n: int = 5, cam1_extra: int = 0, imu_before: int = 0) -> Path:

@@ -125,7 +125,7 @@ def test_pipeline_on_a_live_video_with_the_dropped_column(tmp_path: Path,
     code = main(["run", "--live", str(video), *common, "--out", str(out), "--set", "dataset.live.queue=64",
                  "--set", "dataset.live.realtime=false"])
     printed = capsys.readouterr().out
-    assert code == 0 and f"frames: {n} (" in printed and "frames/s, 0 dropped by the live queue" in printed
+    assert code == 0 and f"frames: {n} read, " in printed and "frames/s, 0 dropped by the live queue" in printed
     stats = _stats(out / "stats.csv")
     assert [int(r["index"]) for r in stats] == list(range(n)) and {r["dropped"] for r in stats} == {"0"}
     cfg = PipelineConfig.load(None, {"dataset": {"kind": "video", "path": str(video), "camera": str(cam),

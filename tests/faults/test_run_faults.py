@@ -156,7 +156,7 @@ def test_full_disk_is_one_line_naming_the_file_and_what_was_written(cli, tum40, 
     def full(path, *a, **k):
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
-    monkeypatch.setattr(vslam.pipeline, "write_report", lambda res, out, title: full(Path(out) / "metrics.json"))
+    monkeypatch.setattr(vslam.pipeline, "write_report", lambda res, out, title, **kw: full(Path(out) / "metrics.json"))
     out = tmp_path / "out"
     rc, _, err = cli("run", "-c", TUM, "--data", tum40, "--max-frames", 10, "-o", out, *FAST)
     one_error_line(rc, err, "metrics.json: No space left on device", "holds", "trajectory.tum.txt", "groundtruth.tum.txt",
@@ -340,7 +340,7 @@ def test_imu_spikes_through_the_cli_are_a_warning_not_a_wrong_trajectory(cli, tm
     rc, stdout, err = cli("run", "-c", "configs/euroc_stereo_inertial.yaml", "--data", seq, "--max-frames", 40,
                           "-o", out, *FAST)
     assert rc == 0 and "Traceback" not in err, err
-    assert "frames: 40 (40 tracked)" in stdout
+    assert "frames: 40 read, 40 posed (40 tracked);" in stdout
     gate = [r.getMessage() for r in caplog.records if "IMU samples rejected" in r.getMessage()]
     assert len(gate) == 1 and "(3 range)" in gate[0] and "imu0/data.csv line " in gate[0]
     ate = json.loads((out / "report" / "metrics.json").read_text())["ate"]["translation_m"]["rmse"]

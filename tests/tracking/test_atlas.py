@@ -135,6 +135,38 @@ def test_no_candidate_in_an_unrelated_map(room_tracker):
     assert atlas.locate(kf.features, kf.ur, atlas.describe(kf.features)) is None
 
 
+def _check_multi_map_outputs(res, out) -> None:
+    """A run that ends in several maps leads with the whole picture everywhere a reader looks: the printed summary
+    (maps, posed of read frames, each map's ATE, then the largest map's number labelled as such), metrics.json
+    (``run`` with the posed fraction and every map, ``maps`` with each map's evaluation) and report.html."""
+    import io
+    import json
+    from contextlib import redirect_stdout
+
+    from vslam.cli import _summary
+
+    assert res.scored_map == 0 and res.n_frames == 70
+    text = io.StringIO()
+    with redirect_stdout(text):
+        _summary(res, out)
+    lines = text.getvalue().splitlines()
+    assert lines[0].startswith("frames: 70 read, 70 posed (70 tracked); ")
+    assert lines[2] == "2 maps, never merged; posed 70 of 70 frames; each map aligned on its own:"
+    assert lines[3].startswith("  map 0: 40 poses, ATE 0.00") and lines[4].startswith("  map 1: 30 poses, ATE 0.00")
+    assert lines[5].startswith("largest map only (map 0, 40 of 70 frames): ATE 0.00") and lines[5].endswith("40 poses")
+    metrics = json.loads((out / "report" / "metrics.json").read_text())
+    run = metrics["run"]
+    assert (run["frames"], run["posed"], run["posed_fraction"], run["scored_map"]) == (70, 70, 1.0, 0)
+    assert [(m["map"], m["poses"]) for m in run["maps"]] == [(0, 40), (1, 30)]
+    for m in run["maps"]:
+        assert m["ate_rmse"] == pytest.approx(metrics["maps"][str(m["map"])]["ate"]["translation_m"]["rmse"])
+        assert m["align"] == "se3"
+    assert metrics["ate"]["translation_m"]["rmse"] == run["maps"][0]["ate_rmse"]  # the headline: the largest map
+    html = (out / "report" / "report.html").read_text()
+    assert "Maps (never merged; each aligned on its own)" in html and "Summary: largest map (map 0, 40 of 70 frames)" in html
+    assert html.count("aligned to the ground truth on its own") == 2  # a trajectory plot per map
+
+
 def test_a_gap_starts_a_new_map_at_once_and_maps_are_scored_apart(tmp_path):
     """RGB-D, 2 s cut out of a path that does not come back: the frame after the gap starts map 1 (no frame
     predicted), the two maps are never merged, and each is evaluated in its own frame."""
@@ -151,6 +183,7 @@ def test_a_gap_starts_a_new_map_at_once_and_maps_are_scored_apart(tmp_path):
         assert e.ate.translation.rmse < 0.0045  # 1.5x
     assert (tmp_path / "report" / "maps.json").exists()
     assert len(read_trajectory(tmp_path / "trajectory_final.tum.txt")) == 70
+    _check_multi_map_outputs(res, tmp_path)
     # the map file holds both maps, each whole, and a run loading it has the old one to merge into
     loaded = load_map(tmp_path / "map.vslam.npz")
     assert loaded.current == 1 and sorted(loaded.others) == [0] and loaded.header["maps"] == [0, 1]

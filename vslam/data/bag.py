@@ -20,6 +20,7 @@ from typing import Any, cast
 import cv2
 import numpy as np
 
+from vslam.data.calibration import check_camera
 from vslam.data.camera_file import CAMERA_FILE_NAME, CameraFile, read_camera_file
 from vslam.data.tum import associate
 from vslam.data.types import Calibration, Frame, ImuSamples, PinholeCamera, SensorKind, Sequence
@@ -121,7 +122,11 @@ def camera_from_info(msg: Any, path: Path, topic: str) -> PinholeCamera:
                                  f"coefficients; {hint}")
     elif model == "radtan":
         D = D[:5]  # what is cut is zeros
-    return PinholeCamera(int(msg.width), int(msg.height), K[0, 0], K[1, 1], K[0, 2], K[1, 2], model, D)  # type: ignore[arg-type]
+    cam = PinholeCamera(int(msg.width), int(msg.height), K[0, 0], K[1, 1], K[0, 2], K[1, 2], model, D)  # type: ignore[arg-type]
+    where = {f: (f"{topic}: camera_info {f} (K[{k}])", None) for f, k in (("fx", 0), ("fy", 4), ("cx", 2), ("cy", 5))}
+    where.update({"width": (f"{topic}: camera_info width", None), "height": (f"{topic}: camera_info height", None),
+                  "distortion": (f"{topic}: camera_info D", None)})
+    return check_camera(cam, path, where)
 
 
 class BagSequence(Sequence):
@@ -220,7 +225,7 @@ class BagSequence(Sequence):
                 raise DatasetError(cf.path, "missing key 'baseline' (metres) for --sensor stereo")
             if self.sensor == "rgbd" and cf.depth_scale is None:
                 cf = CameraFile(**{**cf.__dict__, "depth_scale": ROS_DEPTH_SCALE})
-            self.calibration = cf.calibration(first.shape[1], first.shape[0], self.sensor)
+            self.calibration = cf.calibration(first.shape[1], first.shape[0], self.sensor, image=self.path)
 
     def _camera_file(self, camera: str | Path | None) -> CameraFile | None:
         if camera:

@@ -34,13 +34,14 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
+from vslam.data.calibration import Where, check_calibration, check_camera
 from vslam.data.euroc import parse_distortion_model
 from vslam.data.textio import read_yaml_mapping
 from vslam.data.types import Calibration, ImuNoise, PinholeCamera
@@ -67,13 +68,22 @@ class CameraFile:
     T_body_cam: np.ndarray | None = None  # (4,4), camera in the IMU (body) frame
     imu: ImuNoise | None = None
     camera1: PinholeCamera | None = None  # the right camera when the file gives its own intrinsics (Camera2.*)
+    # where each field is in the file (name as spelt there, line): what ``check_calibration`` names
+    where: Where = field(default_factory=dict)
+    where1: Where | None = None  # the right camera's (Camera2.*)
 
-    def calibration(self, width: int, height: int, sensor: str) -> Calibration:
-        """The Calibration of a ``sensor`` run; a size the file left open becomes the images' ``width``x``height``."""
+    def calibration(self, width: int, height: int, sensor: str, image: str | Path | None = None) -> Calibration:
+        """The Calibration of a ``sensor`` run; a size the file left open becomes the images' ``width``x``height``
+        (of ``image``: the first image or the video, named when its size is not the file's). Checked by
+        ``vslam.data.calibration.check_calibration`` (principal point inside the image, baseline > 0, ...)."""
         cam = self.camera
         if cam.width == 0 or cam.height == 0:
             cam = dataclasses.replace(cam, width=width, height=height)
         elif (cam.width, cam.height) != (width, height):
+            if image is not None:
+                raise DatasetError(image, f"camera is {cam.width}x{cam.height} but the images are {width}x{height}; "
+                                          f"fix width/height in {self.path} (or leave them out to take the images' "
+                                          "size)")
             raise DatasetError(self.path, f"camera is {cam.width}x{cam.height} but the images are {width}x{height}; "
                                           "fix width/height (or leave them out to take the images' size)")
         cam1 = cam  # a rectified pair: the right camera is the left one shifted along x
@@ -81,9 +91,11 @@ class CameraFile:
             cam1 = dataclasses.replace(self.camera1, width=cam.width, height=cam.height)
         T_bc0 = self.T_body_cam if self.T_body_cam is not None else np.eye(4)
         stereo = sensor == "stereo" and self.T_cam0_cam1 is not None
-        return Calibration(cam0=cam, cam1=cam1 if stereo else None, T_body_cam0=T_bc0,
-                           T_body_cam1=T_bc0 @ self.T_cam0_cam1 if stereo else None,
-                           imu=self.imu, depth_scale=self.depth_scale if sensor == "rgbd" else None)
+        cal = Calibration(cam0=cam, cam1=cam1 if stereo else None, T_body_cam0=T_bc0,
+                          T_body_cam1=T_bc0 @ self.T_cam0_cam1 if stereo else None,
+                          imu=self.imu, depth_scale=self.depth_scale if sensor == "rgbd" else None)
+        return check_calibration(cal, self.path, self.where, where1=self.where1,
+                                 baseline=self.where.get("baseline", ("baseline", None)))
 
 
 def read_camera_file(path: Path) -> CameraFile:
@@ -101,6 +113,12 @@ def read_camera_file(path: Path) -> CameraFile:
 def _positive(path: Path, key: str, v: Any, line: int | None) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
         raise DatasetError(path, f"{key!r} must be a positive number, got {v!r}", line)
+    return float(v)
+
+
+def _finite(path: Path, key: str, v: Any, line: int | None) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise DatasetError(path, f"{key!r} must be a finite number, got {v!r}", line)
     return float(v)
 
 
@@ -147,7 +165,9 @@ def _read_ours(path: Path) -> CameraFile:
     for key in ("fx", "fy", "cx", "cy"):
         if key not in data:
             raise DatasetError(path, f"missing key {key!r} (camera intrinsics in pixels: fx, fy, cx, cy)")
-    k = {key: _positive(path, key, data[key], lines.get(key)) for key in ("fx", "fy", "cx", "cy")}
+    # fx, fy > 0 here; the principal point's range, the focal ratio and the distortion: check_camera below
+    k = {key: (_positive if key in ("fx", "fy") else _finite)(path, key, data[key], lines.get(key))
+         for key in ("fx", "fy", "cx", "cy")}
     size = {}
     for key in ("width", "height"):
         v = data.get(key, 0)
@@ -158,6 +178,9 @@ def _read_ours(path: Path) -> CameraFile:
     dist = _numbers(path, "distortion", data.get("distortion", []), lines.get("distortion"))
     dist = _check_distortion(path, model, dist, lines.get("distortion"))
     cam = PinholeCamera(size["width"], size["height"], k["fx"], k["fy"], k["cx"], k["cy"], model, dist)
+    where = {key: (key, lines.get(key)) for key in ("fx", "fy", "cx", "cy", "width", "height", "distortion",
+                                                     "baseline")}
+    check_camera(cam, path, where)
     folder = {}
     for key in ("images", "depth", "right"):
         if key in data:
@@ -174,7 +197,8 @@ def _read_ours(path: Path) -> CameraFile:
     if "imu" in data:
         imu = _imu_noise(path, data["imu"], lines.get("imu"))
     return CameraFile(path, cam, folder.get("images"), folder.get("depth"), opt.get("depth_scale"), folder.get("right"),
-                      _baseline_T(opt["baseline"]) if "baseline" in opt else None, opt.get("fps"), T_bc, imu)
+                      _baseline_T(opt["baseline"]) if "baseline" in opt else None, opt.get("fps"), T_bc, imu,
+                      where=where)
 
 
 def _imu_noise(path: Path, v: Any, line: int | None) -> ImuNoise:
@@ -231,15 +255,23 @@ class _Settings:
         return tuple(float(x) for x in np.asarray(m, np.float64).ravel())
 
 
+def _where(s: _Settings, pre: str) -> dict[str, tuple[str, int | None]]:
+    """Names and lines of the fields under ``pre`` (``Camera.width``/``height`` whatever ``pre`` is)."""
+    where = {key: (pre + key, s.line(pre + key)) for key in ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4", "p1", "p2")}
+    where.update({key: (f"Camera.{key}", s.line(f"Camera.{key}")) for key in ("width", "height")})
+    return where
+
+
 def _opencv_camera(s: _Settings, pre: str, cam_type: str, size: dict[str, int]) -> PinholeCamera:
-    """The intrinsics and distortion under ``pre`` (``Camera.``, ``Camera1.`` or ``Camera2.``)."""
+    """The intrinsics and distortion under ``pre`` (``Camera.``, ``Camera1.`` or ``Camera2.``), checked."""
     path = s.path
     k = {}
     for key in ("fx", "fy", "cx", "cy"):
         if not s.has(pre + key):
             raise DatasetError(path, f"missing key {pre + key!r} (ORB-SLAM3 settings: Camera.fx/fy/cx/cy, Camera1.* "
                                      "and, for the right camera, Camera2.*)")
-        k[key] = _positive(path, pre + key, s.number(pre + key), s.line(pre + key))
+        v = s.number(pre + key)
+        k[key] = _positive(path, pre + key, v, s.line(pre + key)) if key in ("fx", "fy") else v
     if cam_type == "KannalaBrandt8":
         model, names = "equidistant", ("k1", "k2", "k3", "k4")
     elif cam_type == "Rectified":  # ORB-SLAM3 v1.0: a rectified pair, no distortion
@@ -249,7 +281,8 @@ def _opencv_camera(s: _Settings, pre: str, cam_type: str, size: dict[str, int]) 
     dist = tuple(s.number(pre + n) if s.has(pre + n) else 0.0 for n in names)
     if not any(dist):
         model, dist = "none", ()
-    return PinholeCamera(size["width"], size["height"], k["fx"], k["fy"], k["cx"], k["cy"], model, dist)  # type: ignore[arg-type]
+    cam = PinholeCamera(size["width"], size["height"], k["fx"], k["fy"], k["cx"], k["cy"], model, dist)  # type: ignore[arg-type]
+    return check_camera(cam, path, _where(s, pre))
 
 
 def _read_opencv(path: Path) -> CameraFile:
@@ -269,7 +302,12 @@ def _read_opencv(path: Path) -> CameraFile:
     cam = _opencv_camera(s, pre, cam_type, size)
     cam1 = _opencv_camera(s, "Camera2.", cam_type, size) if any(
         s.has(f"Camera2.{key}") for key in ("fx", "fy", "cx", "cy")) else None
+    where = _where(s, pre)
     T01 = None
+    for key in ("Stereo.T_c1_c2", "Stereo.b", "Camera.bf"):
+        if s.has(key):
+            where["baseline"] = (key, s.line(key))
+            break
     if s.has("Stereo.T_c1_c2"):
         T01 = _rigid(path, "Stereo.T_c1_c2", s.matrix("Stereo.T_c1_c2"), s.line("Stereo.T_c1_c2"))
     elif s.has("Stereo.b"):
@@ -289,4 +327,5 @@ def _read_opencv(path: Path) -> CameraFile:
     depth_scale = _positive(path, "DepthMapFactor", s.number("DepthMapFactor"), s.line("DepthMapFactor")) \
         if s.has("DepthMapFactor") else None
     fps = s.number("Camera.fps") if s.has("Camera.fps") else None
-    return CameraFile(path, cam, None, None, depth_scale, None, T01, fps, T_bc, imu, cam1)
+    return CameraFile(path, cam, None, None, depth_scale, None, T01, fps, T_bc, imu, cam1, where=where,
+                      where1=_where(s, "Camera2.") if cam1 is not None else None)

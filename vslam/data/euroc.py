@@ -29,6 +29,7 @@ from typing import Any, cast
 import cv2
 import numpy as np
 
+from vslam.data.calibration import check_calibration, check_camera, check_image_size, image_file_size
 from vslam.data.textio import (check_increasing, check_unit_quaternions, read_rows, read_yaml_mapping, require_dir,
                                require_file, yaml_numbers)
 from vslam.data.trajectory import Trajectory
@@ -73,8 +74,20 @@ def read_camera_yaml(path: Path) -> tuple[PinholeCamera, np.ndarray]:
         raise DatasetError(path, "missing key 'distortion_model'")
     model = parse_distortion_model(path, data["distortion_model"], lines.get("distortion_model"))
     coeffs = yaml_numbers(path, data, lines, "distortion_coefficients", _DISTORTION_COUNTS[model]) if model != "none" else []
+    for key, v in (("width", w), ("height", h)):
+        if not (v > 0 and v == int(v)):
+            raise DatasetError(path, f"resolution {key} = {v:g}: the image size must be a positive integer (pixels)",
+                               lines.get("resolution"))
     camera = PinholeCamera(int(w), int(h), fu, fv, cu, cv, model, tuple(coeffs))
-    return camera, read_T_BS(path, data, lines)
+    return check_camera(camera, path, camera_where(lines)), read_T_BS(path, data, lines)
+
+
+def camera_where(lines: dict[str, int]) -> dict[str, tuple[str, int | None]]:
+    """How an ASL sensor.yaml names each camera field, and its line (for ``check_camera``'s errors)."""
+    intr, res = lines.get("intrinsics"), lines.get("resolution")
+    return {"fx": ("intrinsics fu", intr), "fy": ("intrinsics fv", intr), "cx": ("intrinsics cu", intr),
+            "cy": ("intrinsics cv", intr), "width": ("resolution width", res), "height": ("resolution height", res),
+            "distortion": ("distortion_coefficients", lines.get("distortion_coefficients"))}
 
 
 def read_T_BS(path: Path, data: dict[str, Any], lines: dict[str, int]) -> np.ndarray:
@@ -285,9 +298,18 @@ class EurocSequence(Sequence):
             # name unpaired images that the archive does not hold.
             _check_listed(cam1, keep1)
             self._right = [cam1.files[i] for i in keep1]
+            check_image_size(cam1_model, image_file_size(self._right[0]), self._right[0],
+                             f"{cam1_dir / 'sensor.yaml'} (resolution)")
+            lines = read_yaml_mapping(cam1_dir / "sensor.yaml")[1]
+            check_calibration(Calibration(cam0=cam0_model, cam1=cam1_model, T_body_cam0=T_b_c0, T_body_cam1=T_b_c1),
+                              cam0_dir / "sensor.yaml", path1=cam1_dir / "sensor.yaml",
+                              baseline=("T_BS (the baseline from cam0/sensor.yaml's T_BS)", lines.get("T_BS")))
         _check_listed(cam0, keep0)
         self._t = ns_to_s(cam0.ns[keep0])
         self._left = [cam0.files[i] for i in keep0]
+        # the first image must be of the declared size (a later one that is not is skipped, see _imread_gray)
+        check_image_size(cam0_model, image_file_size(self._left[0]), self._left[0],
+                         f"{cam0_dir / 'sensor.yaml'} (resolution)")
         return cam0_model, T_b_c0, cam1_model, T_b_c1
 
     def _open_imu(self) -> ImuNoise | None:
@@ -360,8 +382,8 @@ class EurocSequence(Sequence):
         return frame
 
     def _load(self, i: int, t_prev: float | None = None) -> Frame | None:
-        left = _imread_gray(self._left[i])
-        right = _imread_gray(self._right[i]) if self._right is not None else None
+        left = _imread_gray(self._left[i], self.calibration.cam0)
+        right = _imread_gray(self._right[i], self.calibration.cam1) if self._right is not None else None
         if left is None or (self._right is not None and right is None):
             return None
         return Frame(
@@ -380,10 +402,14 @@ def _check_listed(stream: _CameraStream, keep: np.ndarray) -> None:
             raise DatasetError(stream.csv, f"listed image {stream.files[i]} does not exist", int(stream.lines[i]))
 
 
-def _imread_gray(path: Path) -> np.ndarray | None:
+def _imread_gray(path: Path, cam: PinholeCamera | None) -> np.ndarray | None:
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if img is None:
         logger.warning("%s: image does not decode; frame skipped", path)
+    elif cam is not None and img.shape != (cam.height, cam.width):
+        logger.warning("%s: image is %dx%d, the camera's is %dx%d; frame skipped", path, img.shape[1], img.shape[0],
+                       cam.width, cam.height)
+        return None
     return img
 
 

@@ -144,10 +144,18 @@ class ImageFolderSequence(Sequence):
             self._depth = self._pair_depth(cf.depth or folder.parent / "depth", max_diff)
         elif sensor == "stereo":
             self._right = self._pair_right(cf.right or folder.parent / "right")
-        first = cv2.imread(str(self._files[0]), cv2.IMREAD_UNCHANGED)
+        # the image size (when the camera file leaves it open) and its check come from the first image that
+        # decodes; those before it are skipped, warned and counted (``skipped``); none decoding is an error
+        first = None
+        for k, f in enumerate(self._files):
+            first = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+            if first is not None:
+                break
+            self._skip(k, "image does not decode")
         if first is None:
-            raise DatasetError(self._files[0], "first image does not decode")
-        self.calibration = cf.calibration(first.shape[1], first.shape[0], sensor)
+            raise DatasetError(folder, f"none of the {len(self._files)} images decodes (first: {self._files[0].name})")
+        self.calibration = cf.calibration(first.shape[1], first.shape[0], sensor, image=self._files[k])
+        self._first = k
 
     def _check_camera_file(self) -> None:
         cf = self.camera_file
@@ -201,14 +209,22 @@ class ImageFolderSequence(Sequence):
     def timestamps(self) -> np.ndarray:
         return self._t.copy()
 
+    def _skip(self, i: int, why: str, path: Path | None = None) -> None:
+        """Warn that frame i is skipped (naming its file) and count it in ``skipped``."""
+        path = path or self._files[i]
+        logger.warning("%s: %s; frame %d skipped", path, why, i)
+        self.skipped.append((i, f"{path.name}: {why}"))
+
     def _load(self, i: int) -> Frame | None:
+        if i < self._first:  # found undecodable when the folder was opened: warned and counted then
+            return None
         image = cv2.imread(str(self._files[i]), cv2.IMREAD_UNCHANGED)
         cam = self.calibration.cam0
         if image is None or image.dtype != np.uint8 or image.shape[:2] != (cam.height, cam.width):
             why = "does not decode" if image is None else (
                 f"is {image.dtype}, expected 8-bit" if image.dtype != np.uint8 else
                 f"is {image.shape[1]}x{image.shape[0]}, the camera's is {cam.width}x{cam.height}")
-            logger.warning("%s: image %s; frame skipped", self._files[i], why)
+            self._skip(i, f"image {why}")
             return None
         if image.ndim == 3 and image.shape[2] == 4:
             image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
@@ -216,12 +232,13 @@ class ImageFolderSequence(Sequence):
         if self._depth is not None and self._depth[i] is not None:
             assert self.calibration.depth_scale is not None
             depth = read_depth(self._depth[i], self.calibration.depth_scale, image.shape[:2])  # type: ignore[arg-type]
-            if depth is None:
+            if depth is None:  # warned by read_depth
+                self.skipped.append((i, f"{self._depth[i].name}: depth image does not decode to the image's size"))  # type: ignore[union-attr]
                 return None
         if self._right is not None:
             right = cv2.imread(str(self._right[i]), cv2.IMREAD_GRAYSCALE if image.ndim == 2 else cv2.IMREAD_COLOR)
             if right is None or right.shape != image.shape:
-                logger.warning("%s: right image does not decode to the left one's shape; frame skipped", self._right[i])
+                self._skip(i, "right image does not decode to the left one's shape", self._right[i])
                 return None
         return Frame(index=i, timestamp=float(self._t[i]), image=image, depth=depth, right=right)
 

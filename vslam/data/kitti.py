@@ -27,6 +27,7 @@ from typing import cast
 import cv2
 import numpy as np
 
+from vslam.data.calibration import check_calibration, check_camera, png_size
 from vslam.data.textio import check_increasing, check_rotations, read_numeric, read_rows, require_dir, require_file
 from vslam.data.trajectory import Trajectory
 from vslam.data.types import Calibration, Frame, PinholeCamera, SensorKind, Sequence
@@ -65,18 +66,6 @@ def _is_float(s: str) -> bool:
     return True
 
 
-def png_size(path: Path) -> tuple[int, int] | None:
-    """(width, height) from a PNG's IHDR chunk (24 bytes read, nothing decoded), None if not a PNG."""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(24)
-    except OSError:
-        return None
-    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
-        return None
-    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
-
-
 def image_size(files: list[Path], calib_path: Path) -> tuple[int, int]:
     """(width, height) of the first of the images that is a readable PNG; a broken one is skipped later."""
     for f in files[:20]:
@@ -89,6 +78,31 @@ def image_size(files: list[Path], calib_path: Path) -> tuple[int, int]:
 def camera_from_P(P: np.ndarray, width: int, height: int) -> PinholeCamera:
     """Rectified 3x4 projection -> undistorted pinhole camera."""
     return PinholeCamera(width, height, float(P[0, 0]), float(P[1, 1]), float(P[0, 2]), float(P[1, 2]))
+
+
+def checked_camera(P: dict[str, np.ndarray], key: str, width: int, height: int, calib_path: Path,
+                   lines: dict[str, int]) -> PinholeCamera:
+    """The camera of ``P[key]``, refused (naming calib.txt, the key, the entry and the line) when its 3x3 part is
+    not a rectified K = [[fx 0 cx] [0 fy cy] [0 0 1]] or its numbers are out of range (``check_camera``)."""
+    M = P[key][:, :3]
+    if abs(M[1, 0]) > 1e-9 or np.abs(M[2] - [0.0, 0.0, 1.0]).max() > 1e-6 or abs(M[0, 1]) > 1e-6 * max(abs(M[0, 0]), 1.0):
+        raise DatasetError(calib_path, f"{key} is not a rectified projection K [I | t]: its first three columns must "
+                                       "be [[fx 0 cx] [0 fy cy] [0 0 1]], found "
+                                       "[" + " ".join(f"{v:g}" for v in M.ravel()) + "]", lines.get(key))
+    where = {f: (f"{key} {f} ({key}[{r},{c}])", lines.get(key))
+             for f, r, c in (("fx", 0, 0), ("fy", 1, 1), ("cx", 0, 2), ("cy", 1, 2))}
+    where.update({f: (f"{f} of the images", None) for f in ("width", "height")})
+    return check_camera(camera_from_P(P[key], width, height), calib_path, where)
+
+
+def calib_lines(path: Path) -> dict[str, int]:
+    """``KEY`` -> its 1-based line in calib.txt (for the errors that name an entry)."""
+    out: dict[str, int] = {}
+    for n, ln in enumerate(path.read_text(errors="replace").splitlines(), 1):
+        key = ln.split(":", 1)[0].strip()
+        if ":" in ln and key not in out:
+            out[key] = n
+    return out
 
 
 def T_cam0_from_P(P: np.ndarray) -> np.ndarray:
@@ -199,6 +213,10 @@ class KittiSequence(Sequence):
             if key not in P:
                 raise DatasetError(calib_path, f"missing {key} (has {', '.join(P) or 'nothing'})")
         width, height = image_size(self._left, calib_path)
+        lines = calib_lines(calib_path)
+        # every P used is checked before it is inverted (fx = 0 would be a singular K)
+        for key in dict.fromkeys(need):
+            checked_camera(P, key, width, height, calib_path, lines)
         cam0 = camera_from_P(P[f"P{left_id}"], width, height)
         # Body = the left camera read; KITTI camera 0 is where the poses live.
         self._T_k0_cam0 = T_cam0_from_P(P[f"P{left_id}"]) if left_id != 0 else np.eye(4)
@@ -206,7 +224,9 @@ class KittiSequence(Sequence):
         if self.sensor == "stereo":
             cam1 = camera_from_P(P[f"P{right_id}"], width, height)
             T_body_cam1 = np.linalg.inv(self._T_k0_cam0) @ T_cam0_from_P(P[f"P{right_id}"])
-        return Calibration(cam0=cam0, cam1=cam1, T_body_cam1=T_body_cam1)
+        key1 = f"P{right_id}"
+        return check_calibration(Calibration(cam0=cam0, cam1=cam1, T_body_cam1=T_body_cam1), calib_path,
+                                 baseline=(f"{key1} (baseline -{key1}[0,3] / {key1}[0,0])", lines.get(key1)))
 
     # -- Sequence interface ------------------------------------------------------------
 
@@ -255,6 +275,12 @@ class KittiSequence(Sequence):
         img = cv2.imread(str(path), self._flags)
         if img is None:
             logger.warning("%s: image does not decode; frame skipped", path)
+            return None
+        cam = self.calibration.cam0
+        if img.shape[:2] != (cam.height, cam.width):
+            logger.warning("%s: image is %dx%d, the camera's is %dx%d; frame skipped", path, img.shape[1],
+                           img.shape[0], cam.width, cam.height)
+            return None
         return img
 
 

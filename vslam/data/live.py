@@ -264,7 +264,10 @@ class _RealSenseSource:
         if camera is not None:  # a camera file overrides the factory intrinsics
             cal = read_camera_file(camera).calibration(*self.size, sensor)
             return Calibration(cam0=cal.cam0, T_body_cam0=cal.T_body_cam0, imu=cal.imu, depth_scale=scale)
-        return Calibration(cam0=self.camera, depth_scale=scale)
+        from vslam.data.calibration import check_calibration
+
+        return check_calibration(Calibration(cam0=self.camera, depth_scale=scale), "RealSense factory calibration",
+                                 {f: (f"colour {f}", None) for f in ("fx", "fy", "cx", "cy", "width", "height")})
 
     def read(self) -> tuple[float, np.ndarray, np.ndarray | None] | None:
         while True:

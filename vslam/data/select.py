@@ -54,6 +54,10 @@ class Subsequence(Sequence):
     def close(self) -> None:
         self.base.close()
 
+    @property
+    def skipped(self) -> list[tuple[int, str]]:
+        return self.base.skipped
+
     def _base_frame(self, i: int) -> Frame | None:
         # readers with ``_load`` warn and return None for a frame that does not decode; the synthetic one renders
         if type(self.base)._load is not Sequence._load:

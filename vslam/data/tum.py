@@ -25,6 +25,7 @@ from typing import cast
 import cv2
 import numpy as np
 
+from vslam.data.calibration import check_calibration, check_image_size, image_file_size
 from vslam.data.euroc import parse_distortion_model
 from vslam.data.textio import check_increasing, read_numeric, read_rows, read_yaml_mapping, require_dir, require_file
 from vslam.data.trajectory import Trajectory, read_trajectory
@@ -208,9 +209,23 @@ class TumRgbdSequence(Sequence):
             if not yaml_path.is_file():
                 logger.warning("%s: folder name names no freiburg1/2/3 camera; using the ROS default intrinsics 525 525 319.5 239.5", root)
         scale = TUM_DEPTH_SCALE
+        name = re.search(r"(?:freiburg|fr)([123])(?![0-9])", root.name.lower())
+        declared = (f"the TUM freiburg{name.group(1)} camera (named by the folder; give calibration.yaml otherwise)"
+                    if name else "the ROS default camera (the folder names no freiburg1/2/3; give calibration.yaml)")
+        source: Path = root
+        where: dict[str, tuple[str, int | None]] = {}
         if yaml_path.is_file():
             camera, scale = read_calibration_yaml(yaml_path, camera, scale)
-        return Calibration(cam0=camera, depth_scale=scale if self.sensor == "rgbd" else None)
+            lines = read_yaml_mapping(yaml_path)[1]
+            where = {key: (key, lines.get(key)) for key in ("fx", "fy", "cx", "cy", "width", "height", "distortion")}
+            source = yaml_path
+            if "width" in lines or "height" in lines:
+                declared = f"{yaml_path} (width, height)"
+        cal = check_calibration(Calibration(cam0=camera, depth_scale=scale if self.sensor == "rgbd" else None),
+                                source, where)
+        # the first image must be of the calibration's size (a later one that is not is skipped, see _load)
+        check_image_size(camera, image_file_size(self._rgb[0]), self._rgb[0], declared)
+        return cal
 
     def _read_accelerometer(self, path: Path) -> tuple[np.ndarray, np.ndarray] | None:
         if not path.is_file():

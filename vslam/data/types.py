@@ -200,6 +200,14 @@ class Sequence(abc.ABC):
         """Frame i decoded, or None when its files do not decode. Readers override this (or ``__iter__``)."""
         raise NotImplementedError
 
+    @property
+    def skipped(self) -> list[tuple[int, str]]:
+        """(frame index, why) of the frames this reader skipped so far because they do not decode (the video
+        and image-folder readers fill it: a video's undecodable frames when it is opened, an image file when
+        it is read; each was also logged as a warning). The frames read in another process (the front-end
+        process) are counted there, not here."""
+        return self.__dict__.setdefault("_skipped", [])
+
     def groundtruth(self) -> "Trajectory | None":
         """Ground-truth trajectory of cam0 at its native rate, or None."""
         return None

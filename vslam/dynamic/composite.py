@@ -21,6 +21,7 @@ import numpy as np
 
 from vslam.data.types import Frame
 from vslam.errors import DatasetError
+from vslam.progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -257,14 +258,16 @@ def composited_frames(seq_dir: str | Path, coco_root: str | Path, cfg: MakeDynam
             yield fr, img, depth, mask, boxes
 
 
-def make_dynamic(seq_dir: str | Path, out_dir: str | Path, coco_root: str | Path, cfg: MakeDynamicConfig = MakeDynamicConfig()) -> Path:
+def make_dynamic(seq_dir: str | Path, out_dir: str | Path, coco_root: str | Path, cfg: MakeDynamicConfig = MakeDynamicConfig(),
+                 progress: Progress | None = None) -> Path:
     """Composite walking people into the TUM RGB-D or KITTI sequence ``seq_dir``; write its layout + masks to
-    ``out_dir``. Returns the folder to give ``dataset.path`` (for KITTI ``out_dir/sequences/NN``)."""
+    ``out_dir``. Returns the folder to give ``dataset.path`` (for KITTI ``out_dir/sequences/NN``).
+    ``progress(done, total)`` after each frame written."""
     from vslam.data.kitti import is_kitti_layout
 
     if is_kitti_layout(Path(seq_dir)):
-        return _make_dynamic_kitti(Path(seq_dir), Path(out_dir), coco_root, cfg)
-    return _make_dynamic_tum(seq_dir, out_dir, coco_root, cfg)
+        return _make_dynamic_kitti(Path(seq_dir), Path(out_dir), coco_root, cfg, progress)
+    return _make_dynamic_tum(seq_dir, out_dir, coco_root, cfg, progress)
 
 
 def _box_lines(stamp: str, boxes: np.ndarray) -> list[str]:
@@ -274,7 +277,8 @@ def _box_lines(stamp: str, boxes: np.ndarray) -> list[str]:
 BOXES_HEADER = "# timestamp object_id x1 y1 x2 y2 (inclusive pixels)\n"
 
 
-def _make_dynamic_kitti(seq_dir: Path, out_dir: Path, coco_root: str | Path, cfg: MakeDynamicConfig) -> Path:
+def _make_dynamic_kitti(seq_dir: Path, out_dir: Path, coco_root: str | Path, cfg: MakeDynamicConfig,
+                        progress: Progress | None = None) -> Path:
     import shutil
 
     from vslam.data.kitti import resolve_sequence_dir
@@ -284,12 +288,15 @@ def _make_dynamic_kitti(seq_dir: Path, out_dir: Path, coco_root: str | Path, cfg
     for sub in ("image_0", "mask_0"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     box_lines, n = [], 0
+    times = (src / "times.txt").read_text().splitlines(keepends=True)
+    total = len(times) if cfg.max_frames is None else min(len(times), cfg.max_frames)
     for fr, img, mask, boxes in composited_kitti_frames(src, coco_root, cfg):
         cv2.imwrite(str(out / "image_0" / f"{fr.index:06d}.png"), img)
         cv2.imwrite(str(out / "mask_0" / f"{fr.index:06d}.png"), mask.astype(np.uint8) * 255)
         box_lines += _box_lines(f"{fr.timestamp:.6f}", boxes)
         n += 1
-    times = (src / "times.txt").read_text().splitlines(keepends=True)
+        if progress is not None:
+            progress(n, total)
     (out / "times.txt").write_text("".join(times[:n]))
     shutil.copy(src / "calib.txt", out / "calib.txt")
     (out_dir / "poses").mkdir(parents=True, exist_ok=True)
@@ -301,13 +308,16 @@ def _make_dynamic_kitti(seq_dir: Path, out_dir: Path, coco_root: str | Path, cfg
     return out
 
 
-def _make_dynamic_tum(seq_dir: str | Path, out_dir: str | Path, coco_root: str | Path, cfg: MakeDynamicConfig) -> Path:
+def _make_dynamic_tum(seq_dir: str | Path, out_dir: str | Path, coco_root: str | Path, cfg: MakeDynamicConfig,
+                      progress: Progress | None = None) -> Path:
     import shutil
 
     from vslam.data.synthetic.writer import depth_to_png
     from vslam.data.tum import TumRgbdSequence
 
-    cam = TumRgbdSequence(seq_dir).calibration.cam0
+    seq = TumRgbdSequence(seq_dir)
+    cam = seq.calibration.cam0
+    total = len(seq) if cfg.max_frames is None else min(len(seq), cfg.max_frames)
     out = Path(out_dir)
     for sub in ("rgb", "depth", "mask"):
         (out / sub).mkdir(parents=True, exist_ok=True)
@@ -321,6 +331,8 @@ def _make_dynamic_tum(seq_dir: str | Path, out_dir: str | Path, coco_root: str |
         rgb_lines.append(f"{stamp} rgb/{stamp}.png\n")
         depth_lines.append(f"{stamp} depth/{stamp}.png\n")
         mask_lines.append(f"{stamp} mask/{stamp}.png\n")
+        if progress is not None:
+            progress(len(rgb_lines), total)
     header = "# vslam make-dynamic: {} composited from {}\n# timestamp filename\n"
     for name, lines in (("rgb.txt", rgb_lines), ("depth.txt", depth_lines), ("mask.txt", mask_lines)):
         (out / name).write_text(header.format(name, seq_dir) + "".join(lines))
@@ -349,8 +361,8 @@ def add_cli(sub: argparse._SubParsersAction) -> None:
     m.add_argument("out", help="output folder (the input's layout + masks + boxes.txt)")
     m.add_argument("--coco", default="coco128", help="COCO128 folder with segments/ (relative: under $VSLAM_DATA)")
     m.add_argument("--people", type=int, help="walkers (default 3 for TUM, 6 spread along a KITTI drive)")
-    m.add_argument("--seed", type=int, default=0)
-    m.add_argument("--max-frames", type=int)
+    m.add_argument("--seed", type=int, default=0, help="random seed of the walkers: which people, where and how they walk (default: %(default)s)")
+    m.add_argument("--max-frames", type=int, metavar="N", help="composite only the first N frames")
     m.set_defaults(fn=cmd_make_dynamic)
 
 
@@ -360,6 +372,10 @@ def cmd_make_dynamic(args: argparse.Namespace) -> int:
     def find(p: str) -> Path:
         return Path(p) if Path(p).exists() or Path(p).is_absolute() else data_root() / p
 
-    out = make_dynamic(find(args.data), args.out, find(args.coco), walker_config(find(args.data), args.people, args.seed, args.max_frames))
+    from vslam.progress import progress_bar
+
+    with progress_bar("compositing", quiet=args.quiet) as bar:
+        out = make_dynamic(find(args.data), args.out, find(args.coco),
+                           walker_config(find(args.data), args.people, args.seed, args.max_frames), bar)
     print(f"wrote {out}")
     return 0

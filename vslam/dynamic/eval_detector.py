@@ -201,9 +201,8 @@ def add_cli(sub: argparse._SubParsersAction) -> None:
 def cmd_eval_detector(args: argparse.Namespace) -> int:
     import json
 
-    from tqdm import tqdm
-
     from vslam.paths import data_root
+    from vslam.progress import progress_bar
 
     data = Path(args.data)
     if not data.exists() and not data.is_absolute() and (data_root() / data).exists():
@@ -214,8 +213,8 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
     threshold = slam_threshold if args.threshold is None else args.threshold
     if not 0 <= threshold <= 1:
         raise ConfigError(f"--threshold is a score in [0, 1], got {threshold}")
-    with tqdm(total=len(records), desc="detecting", unit="image", leave=False, disable=None) as bar:
-        preds = predict(det, records, lambda done, total: bar.update(done - bar.n))
+    with progress_bar("detecting", len(records), unit="image", quiet=args.quiet) as bar:
+        preds = predict(det, records, bar)
     rep = evaluate(records, preds, threshold)
     rep.update(model=name, data=str(data), layout=layout, split=split)
     print(f"{name} on {data} ({layout}, split {split}, {len(records)} images)")

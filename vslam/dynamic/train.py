@@ -43,6 +43,7 @@ from vslam.dynamic.loss import LossConfig, MaskTargets, detection_loss
 from vslam.dynamic.metrics import detection_report
 from vslam.dynamic.model import DetectorConfig, YoloDetector, decode, mask_head_modules, recalibrate_bn
 from vslam.errors import ConfigError
+from vslam.progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -421,16 +422,18 @@ def evaluate(model: YoloDetector, data: list[Sample], cfg: TrainConfig, dev: tor
     return rep
 
 
-def train(cfg: TrainConfig) -> dict[str, dict[str, float]]:
-    """Run (or resume) training; returns the held-out metrics per set ({} on ranks other than 0)."""
+def train(cfg: TrainConfig, progress: Progress | None = None) -> dict[str, dict[str, float]]:
+    """Run (or resume) training; returns the held-out metrics per set ({} on ranks other than 0).
+    ``progress(iterations done, iterations)`` on rank 0 after each iteration."""
     cfg = resolve(cfg)
     dev = torch.device("cuda" if cfg.device == "cuda" or (cfg.device == "auto" and torch.cuda.is_available()) else "cpu")
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
-    return ddp.launch(dev, functools.partial(_train, cfg))
+    return ddp.launch(dev, functools.partial(_train, cfg, progress=progress))
 
 
-def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict[str, dict[str, float]]:
+def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int,
+           progress: Progress | None = None) -> dict[str, dict[str, float]]:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)  # weight initialisation
@@ -472,6 +475,8 @@ def _train(cfg: TrainConfig, dev: torch.device, rank: int, n_ranks: int) -> dict
                 opt.step()
                 if not lead:
                     continue
+                if progress is not None:
+                    progress(it + 1, cfg.iterations)
                 if it % cfg.log_every == 0 or it + 1 == cfg.iterations:
                     mask = f"{parts['mask']:.5f}," if cfg.masks else ""
                     f.write(f"{it},{_lr(cfg, it):.6g},{float(loss.detach()):.5f},{parts['box']:.5f},{parts['cls']:.5f},"

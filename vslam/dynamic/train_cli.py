@@ -15,8 +15,10 @@ def add_cli(train_sub: argparse._SubParsersAction) -> None:
 
 def cmd_train_detector(args: argparse.Namespace) -> int:
     from vslam.dynamic.train import TrainConfig, train
+    from vslam.progress import progress_bar
 
-    metrics = train(train_config(TrainConfig, args))
+    with progress_bar("training", unit="it", quiet=args.quiet) as bar:
+        metrics = train(train_config(TrainConfig, args), progress=bar)
     if metrics:  # under torchrun only rank 0 evaluates
         print(json.dumps(metrics, indent=2))
     return 0

@@ -62,6 +62,9 @@ def evaluate(
         rpe_series[stats.label] = series
 
     kitti, kitti_reason = kitti_odometry_error(assoc.gt.poses, assoc.est.poses, cfg.kitti_lengths, cfg.kitti_step)
+    if method == "se3" and monocular:
+        notes.append("SE3 alignment of a trajectory without metric scale (monocular): its scale error counts in the "
+                     "ATE; align: auto scores such runs with Sim3")
     if kitti is not None and method == "sim3":
         notes.append("KITTI metric uses the unaligned estimate (as the devkit does), so a scale error counts in full")
 

@@ -11,6 +11,7 @@ import html
 import json
 import logging
 from pathlib import Path
+from typing import Any
 
 from vslam.eval import plots
 from vslam.eval.metrics import ErrorStats
@@ -38,19 +39,30 @@ ul.notes li{color:#7a4b00}
 """
 
 
-def write_report(result: EvalResult, out_dir: str | Path, title: str = "Trajectory evaluation") -> dict[str, Path]:
+def write_report(result: EvalResult, out_dir: str | Path, title: str = "Trajectory evaluation", *,
+                 run: dict[str, Any] | None = None, maps: dict[int, EvalResult] | None = None) -> dict[str, Path]:
     """Write the report files; returns their paths by name.
 
     Keys: metrics (metrics.json), report_md, report_html, and one per plot drawn
     (trajectory, ate_time, ate_hist, rpe_time) when ``result.config.plots`` and
     the result still holds its per-pose arrays.
+
+    run: the whole run (``RunResult.run_summary``: frames, posed, maps) when ``result`` scores one part of it;
+    written to metrics.json as ``run`` and shown first, so a reader sees what the headline number covers.
+    maps: each map's own evaluation when maps were never merged (metrics.json ``maps``, a plot per map).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Path] = {}
+    maps = maps or {}
 
     files["metrics"] = out / "metrics.json"
-    write_text(files["metrics"], json.dumps(result.to_dict(), indent=2) + "\n")
+    metrics = result.to_dict()
+    if run is not None:
+        metrics["run"] = run
+    if maps:
+        metrics["maps"] = {str(m): e.to_dict() for m, e in sorted(maps.items())}
+    write_text(files["metrics"], json.dumps(metrics, indent=2) + "\n")
 
     images: dict[str, bytes] = {}
     if result.config.plots and result.arrays is not None:
@@ -59,12 +71,20 @@ def write_report(result: EvalResult, out_dir: str | Path, title: str = "Trajecto
             if key in images:
                 files[key] = out / name
                 write_bytes(files[key], images[key])
+    map_images: dict[int, bytes] = {}
+    if result.config.plots and len(maps) > 1:
+        for m, e in sorted(maps.items()):
+            if e.arrays is not None:
+                map_images[m] = plots.trajectory_png(e.arrays, e.alignment.method)
+                files[f"trajectory_map{m}"] = out / f"trajectory_map{m}.png"
+                write_bytes(files[f"trajectory_map{m}"], map_images[m])
 
-    tables = report_tables(result)
+    tables = run_tables(run) + report_tables(result, scope=_scope(run))
     files["report_md"] = out / "report.md"
-    write_text(files["report_md"], _markdown(result, title, tables, [k for k, _, _ in PLOTS if k in images]))
+    write_text(files["report_md"], _markdown(result, title, tables, [k for k, _, _ in PLOTS if k in images],
+                                             sorted(map_images)))
     files["report_html"] = out / "report.html"
-    write_text(files["report_html"], _html(result, title, tables, images))
+    write_text(files["report_html"], _html(result, title, tables, images, map_images))
     logger.info("wrote evaluation report to %s", out)
     return files
 
@@ -82,15 +102,46 @@ def _draw(result: EvalResult) -> dict[str, bytes]:
     return images
 
 
-def report_tables(result: EvalResult) -> list[Table]:
-    """The report's tables as strings, shared by the Markdown and HTML writers."""
+def _scope(run: dict[str, Any] | None) -> str:
+    """What the headline evaluation covers, as its section titles say it."""
+    if run is None or run.get("scored_map") is None:
+        return ""
+    poses = next(m["poses"] for m in run["maps"] if m["map"] == run["scored_map"])
+    return f"largest map (map {run['scored_map']}, {poses} of {run['frames']} frames)"
+
+
+def run_tables(run: dict[str, Any] | None) -> list[Table]:
+    """The whole run (frames read, posed, tracked) and, with several maps, every map with its own ATE."""
+    if run is None:
+        return []
+    n = run["frames"]
+    rows = [["frames read", str(n)],
+            ["posed", f"{run['posed']} of {n} ({100 * run['posed_fraction']:.1f} %)"],
+            ["tracked (measured)", f"{run['tracked']} of {n}"],
+            ["maps", str(len(run["maps"]))],
+            ["scale", "metric" if run["metric_scale"] else "not observable (monocular): Sim3 alignment"],
+            ["scored below", run["scored"]]]
+    tables: list[Table] = [("Run", ["", ""], rows)]
+    if len(run["maps"]) > 1:
+        head = ["map", "poses", "tracked", "ATE rmse (m)", "alignment"]
+        body = [[str(m["map"]), str(m["poses"]), str(m["tracked"]),
+                 _f(m["ate_rmse"]) if "ate_rmse" in m else "not scored (fewer than 3 matched poses)",
+                 (m["align"] + (f", scale {m['scale']:.4f}" if m["align"] == "sim3" else "")) if "align" in m else "–"]
+                for m in run["maps"]]
+        tables.append(("Maps (never merged; each aligned on its own)", head, body))
+    return tables
+
+
+def report_tables(result: EvalResult, scope: str = "") -> list[Table]:
+    """The report's tables as strings, shared by the Markdown and HTML writers; ``scope`` names the part of the
+    run they score when it is not the whole run."""
     r = result
     tu = "s" if r.time_unit == "s" else "frames"
     how = f"by timestamp within {r.config.max_diff:g} s" if r.matched_by == "time" else "line by line"
     al = r.alignment
     align = al.method + (f", scale {al.s:.6f}" if al.method == "sim3" else "")
     if r.config.align == "auto":
-        align += f" (auto, {'monocular' if r.monocular else 'not monocular'})"
+        align += f" (auto: {'scale not observable (monocular)' if r.monocular else 'metric scale'})"
     summary = [
         ["estimate", r.est_path or "(in memory)"],
         ["ground truth", r.gt_path or "(in memory)"],
@@ -107,7 +158,8 @@ def report_tables(result: EvalResult) -> list[Table]:
     for s in r.rpe:
         t, q = s.translation, s.rotation_deg
         rpe.append([s.label, *map(_f, (t.rmse, t.mean, t.median, t.max, q.rmse, q.mean, q.max)), str(t.n)])
-    tables: list[Table] = [("Summary", ["", ""], summary), ("ATE (after alignment)", stat_head, ate)]
+    of = f": {scope}" if scope else ""
+    tables: list[Table] = [(f"Summary{of}", ["", ""], summary), (f"ATE (after alignment){of}", stat_head, ate)]
     if rpe:
         tables.append(("RPE", rpe_head, rpe))
     if r.kitti is not None:
@@ -126,7 +178,7 @@ def _f(v: float) -> str:
     return f"{v:.6f}"
 
 
-def _markdown(result: EvalResult, title: str, tables: list[Table], plot_keys: list[str]) -> str:
+def _markdown(result: EvalResult, title: str, tables: list[Table], plot_keys: list[str], map_plots: list[int]) -> str:
     lines = [f"# {title}", ""]
     for name, head, rows in tables:
         lines += [f"## {name}", ""]
@@ -143,10 +195,13 @@ def _markdown(result: EvalResult, title: str, tables: list[Table], plot_keys: li
         for key, name, caption in PLOTS:
             if key in plot_keys:
                 lines += [f"![{caption}]({name})", ""]
+    if map_plots:
+        lines += ["## Each map", ""] + [f"![map {m}, aligned on its own](trajectory_map{m}.png)\n" for m in map_plots]
     return "\n".join(lines)
 
 
-def _html(result: EvalResult, title: str, tables: list[Table], images: dict[str, bytes]) -> str:
+def _html(result: EvalResult, title: str, tables: list[Table], images: dict[str, bytes],
+          map_images: dict[int, bytes]) -> str:
     e = html.escape
     parts = [
         "<!DOCTYPE html>",
@@ -173,5 +228,11 @@ def _html(result: EvalResult, title: str, tables: list[Table], images: dict[str,
                     f'<figure><img alt="{e(caption)}" src="data:image/png;base64,{data}">'
                     f"<figcaption>{e(caption)}</figcaption></figure>"
                 )
+    if map_images:
+        parts.append("<h2>Each map</h2>")
+        for m, png in sorted(map_images.items()):
+            data = base64.b64encode(png).decode("ascii")
+            parts.append(f'<figure><img alt="map {m}" src="data:image/png;base64,{data}">'
+                         f"<figcaption>map {m}, aligned to the ground truth on its own</figcaption></figure>")
     parts.append("</body></html>")
     return "\n".join(parts) + "\n"

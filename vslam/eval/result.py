@@ -115,11 +115,14 @@ class EvalResult:
             notes=list(d["notes"]),
         )
 
+    def ate_text(self) -> str:
+        """``ATE 0.0039 m rmse (se3)``: the number with the alignment that made it (and Sim3's scale)."""
+        s = f"ATE {self.ate.translation.rmse:.4f} m rmse ({self.alignment.method}"
+        return s + (f", scale {self.alignment.s:.4f})" if self.alignment.method == "sim3" else ")")
+
     def summary(self) -> str:
         """One line for logs and CLIs."""
-        s = f"ATE {self.ate.translation.rmse:.4f} m rmse ({self.alignment.method}"
-        s += f", scale {self.alignment.s:.4f})" if self.alignment.method == "sim3" else ")"
-        s += f", {self.n_matched} poses"
+        s = self.ate_text() + f", {self.n_matched} poses"
         if self.kitti is not None:
             s += f", KITTI t_rel {self.kitti.t_rel:.2f} % r_rel {self.kitti.r_rel:.3f} deg/100m"
         return s

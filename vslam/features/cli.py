@@ -13,8 +13,9 @@ def add_cli(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--keypoints", type=int, default=1000, help="keypoints per image and method")
     p.add_argument("--pairs", type=int, default=2, help="random homographies per held-out image")
     p.add_argument("--images", type=int, default=12, help="held-out images per source")
-    p.add_argument("--methods", default="orb,sift,convpoint,convpoint-int8")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--methods", default="orb,sift,convpoint,convpoint-int8", help="comma-separated methods to compare "
+                   "(default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the homographies and illumination changes (default: %(default)s)")
     p.add_argument("--out", "-o", help="write results.json and table.md here")
     p.set_defaults(fn=_cmd)
 
@@ -44,11 +45,13 @@ def _cmd(args: argparse.Namespace) -> int:
     from vslam.features.convpoint import default_weights
     from vslam.features.evaluate import FeatureBenchConfig, format_table, run_feature_bench
     from vslam.paths import data_root
+    from vslam.progress import progress_bar
 
     torch.set_num_threads(2)
     cfg = FeatureBenchConfig(n_keypoints=args.keypoints, pairs_per_image=args.pairs, max_images_per_source=args.images,
                              seed=args.seed)
-    res = run_feature_bench(args.weights or default_weights(), data_root(), cfg, tuple(args.methods.split(",")))
+    with progress_bar("evaluating", unit="pass", quiet=args.quiet) as bar:
+        res = run_feature_bench(args.weights or default_weights(), data_root(), cfg, tuple(args.methods.split(",")), bar)
     table = "\n".join(format_table(res))
     print(table)
     if args.out:

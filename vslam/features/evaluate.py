@@ -32,6 +32,7 @@ import numpy as np
 
 from vslam.features.matching import match_mutual
 from vslam.geometry.triangulation import fundamental
+from vslam.progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -148,8 +149,9 @@ def _mean(rows: list[dict[str, float]]) -> dict[str, float]:
 
 
 def homography_benchmark(methods: dict[str, Method], images: dict[str, list[tuple[str, np.ndarray]]],
-                         cfg: FeatureBenchConfig = FeatureBenchConfig()) -> dict:
-    """-> {condition: {method: mean metrics}} over every pair, plus ms per image per method."""
+                         cfg: FeatureBenchConfig = FeatureBenchConfig(), progress: Progress | None = None) -> dict:
+    """-> {condition: {method: mean metrics}} over every pair, plus ms per image per method. ``progress(methods
+    done, methods)``."""
     from vslam.features.homography import HomographySpec, illumination_change, random_homography, warp
 
     rng = np.random.default_rng(cfg.seed)
@@ -180,21 +182,30 @@ def homography_benchmark(methods: dict[str, Method], images: dict[str, list[tupl
         for cond in rows:
             res[cond][mname] = _mean(rows[cond])
         res["ms_per_image"][mname] = 1000 * t / max(n_calls, 1)
+        if progress is not None:
+            progress(len(res["ms_per_image"]), len(methods))
     return res
 
 
-def epipolar_benchmark(methods: dict[str, Method], root: Path, cfg: FeatureBenchConfig = FeatureBenchConfig()) -> dict:
-    """-> {sequence: {method: {inlier_ratio, matches, pairs}}} on held-out consecutive frames with true poses."""
-    from vslam.data.registry import open_sequence
+def epipolar_sequences(root: Path) -> dict[str, tuple[str, int]]:
+    """The held-out sequences of the epipolar check that ``root`` holds: {name: (folder, first held-out frame)}."""
     from vslam.features.train_keypoints import KeypointTrainConfig
 
     tc = KeypointTrainConfig()
-    gaps = cfg.gap or {"tum": 5, "kitti": 2}
     seqs = {"tum": (tc.tum, tc.tum_split), "kitti": (tc.kitti, tc.kitti_split)}
+    return {name: (rel, split) for name, (rel, split) in seqs.items() if (root / rel).exists()}
+
+
+def epipolar_benchmark(methods: dict[str, Method], root: Path, cfg: FeatureBenchConfig = FeatureBenchConfig(),
+                       progress: Progress | None = None) -> dict:
+    """-> {sequence: {method: {inlier_ratio, matches, pairs}}} on held-out consecutive frames with true poses.
+    ``progress(done, sequences x methods)`` after each method on each sequence."""
+    from vslam.data.registry import open_sequence
+
+    gaps = cfg.gap or {"tum": 5, "kitti": 2}
+    seqs = epipolar_sequences(root)
     out = {}
     for name, (rel, split) in seqs.items():
-        if not (root / rel).exists():
-            continue
         seq = open_sequence(root / rel)
         cam = seq.calibration.cam0
         frames = [f for f in seq if f.index >= split and f.T_world_cam is not None]
@@ -218,6 +229,8 @@ def epipolar_benchmark(methods: dict[str, Method], root: Path, cfg: FeatureBench
                 counts.append(len(m))
             out[name][mname] = {"inlier_ratio": float(np.mean(ratios)) if ratios else 0.0,
                                 "matches": float(np.mean(counts)) if counts else 0.0, "pairs": len(pairs)}
+            if progress is not None:
+                progress(sum(map(len, out.values())), len(seqs) * len(methods))
     return out
 
 
@@ -246,9 +259,11 @@ def time_methods(methods: dict[str, Method], image: np.ndarray, repeat: int = 10
 
 
 def run_feature_bench(weights: str | Path, root: Path, cfg: FeatureBenchConfig = FeatureBenchConfig(),
-                      methods: tuple[str, ...] = ("orb", "sift", "convpoint", "convpoint-int8")) -> dict:
+                      methods: tuple[str, ...] = ("orb", "sift", "convpoint", "convpoint-int8"),
+                      progress: Progress | None = None) -> dict:
     """The full evaluation of ``weights`` against ORB and SIFT, one run, one set of pairs. "convpoint-int8": the
-    same network quantised for the CPU (``FeatureConfig.int8``; its ranges must be beside the weights)."""
+    same network quantised for the CPU (``FeatureConfig.int8``; its ranges must be beside the weights).
+    ``progress(done, total)`` after each method's pass of each benchmark (the homography one, then per sequence)."""
     import torch
 
     from vslam.features.convpoint import load_convpoint
@@ -267,7 +282,12 @@ def run_feature_bench(weights: str | Path, root: Path, cfg: FeatureBenchConfig =
         from vslam.errors import DatasetError
 
         raise DatasetError(root, "no held-out images found (COCO128 / TUM / KITTI / EuRoC subsets; set VSLAM_DATA)")
-    res = {"homography": homography_benchmark(fns, images, cfg), "epipolar": epipolar_benchmark(fns, root, cfg),
+    n_hom, n_all = len(fns), len(fns) * (1 + len(epipolar_sequences(root)))
+
+    def after(skip: int) -> Progress | None:  # one count over both benchmarks
+        return None if progress is None else lambda done, total: progress(skip + done, n_all)
+
+    res = {"homography": homography_benchmark(fns, images, cfg, after(0)), "epipolar": epipolar_benchmark(fns, root, cfg, after(n_hom)),
            "images": {k: len(v) for k, v in images.items()}, "n_keypoints": cfg.n_keypoints}
     vga = next((im for _, ims in images.items() for _, im in ims if im.shape == (480, 640)), None)
     if vga is not None:

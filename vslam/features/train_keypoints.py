@@ -34,6 +34,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from vslam.progress import Progress
+
 log = logging.getLogger(__name__)
 
 
@@ -300,8 +302,9 @@ def _joint_batch(cfg, images, labels, rng):
     return ims_a + ims_b, np.stack(ta + tb), np.stack([np.ones_like(vb[0])] * cfg.batch + vb), np.stack(pa), np.stack(pb), np.array(nv)
 
 
-def train(cfg: KeypointTrainConfig) -> dict:
-    """Run (or resume) the three stages -> metrics ({} on DDP ranks other than 0)."""
+def train(cfg: KeypointTrainConfig, progress: Progress | None = None) -> dict:
+    """Run (or resume) the three stages -> metrics ({} on DDP ranks other than 0). ``progress(steps done, steps)``
+    on rank 0 after each step of the two training stages, counted together (adaptation between them has none)."""
     import torch
 
     from vslam import ddp
@@ -310,7 +313,7 @@ def train(cfg: KeypointTrainConfig) -> dict:
         cfg = toy_config(cfg)
     torch.set_num_threads(max(1, cfg.threads))
     dev = torch.device("cuda" if cfg.device in ("auto", "cuda") and torch.cuda.is_available() else "cpu")
-    return ddp.launch(dev, functools.partial(_train, cfg))
+    return ddp.launch(dev, functools.partial(_train, cfg, progress=progress))
 
 
 def _optim(model, lr, wd, steps):
@@ -340,7 +343,7 @@ def _resume(last: Path, model, dev) -> dict:
     return ck
 
 
-def _train(cfg: KeypointTrainConfig, dev, rank: int, n_ranks: int) -> dict:
+def _train(cfg: KeypointTrainConfig, dev, rank: int, n_ranks: int, progress: Progress | None = None) -> dict:
     import torch
 
     from vslam import ddp
@@ -373,6 +376,8 @@ def _train(cfg: KeypointTrainConfig, dev, rank: int, n_ranks: int) -> dict:
         log.info("resumed %s at step %d", state["stage"], state["step"])
     t_start = time.perf_counter()
     times = {}
+    before = {"shapes": 0, "joint": 0 if cfg.init else cfg.shapes_steps}  # steps of the stages before each one
+    total_steps = before["joint"] + cfg.joint_steps
 
     def save(opt, sched, rng):
         if lead:
@@ -402,6 +407,8 @@ def _train(cfg: KeypointTrainConfig, dev, rank: int, n_ranks: int) -> dict:
             state["step"] += 1
             for k, v in parts.items():
                 state["history"][k].append(v)
+            if lead and progress is not None:
+                progress(before[name] + state["step"], total_steps)
             if lead and state["step"] % cfg.log_every == 0:
                 means = {k: float(np.mean(state["history"][k][-cfg.log_every:])) for k in parts}
                 per_step = (time.perf_counter() - t0) / max(state["step"], 1)
@@ -503,7 +510,10 @@ def add_cli(train_sub) -> None:
 def _cmd(args) -> int:
     from vslam.train_cli import train_config
 
-    metrics = train(train_config(KeypointTrainConfig, args))
+    from vslam.progress import progress_bar
+
+    with progress_bar("training", unit="step", quiet=args.quiet) as bar:
+        metrics = train(train_config(KeypointTrainConfig, args), progress=bar)
     if metrics:
         print(json.dumps({k: metrics[k] for k in ("loss", "stage_s") if k in metrics} | {"eval": metrics.get("eval")}, indent=2))
     return 0

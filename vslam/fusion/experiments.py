@@ -55,9 +55,9 @@ def cmd_fusion(args: argparse.Namespace) -> int:
 def add_cli(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``fusion <experiment>`` on an argparse subparsers object (handler in ``fn``)."""
     p = subparsers.add_parser("fusion", help="navigation-fusion experiments (seeds 000, 002, 003 ch. 2, 004)")
-    p.add_argument("experiment", choices=sorted(EXPERIMENTS))
+    p.add_argument("experiment", choices=sorted(EXPERIMENTS), help="which experiment to run (docs/fusion.md)")
     p.add_argument("--out", default=None, help="output folder (default runs/fusion/<experiment>)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="random seed of the simulated runs and sensor noise (default: %(default)s)")
     p.add_argument("--quick", action="store_true", help="small, fast version (for tests and smoke runs)")
     p.add_argument("--vo-run", default=None, metavar="DIR",
                    help="validity_vslam: a `vslam run` output folder whose trajectory is the VIO channel "

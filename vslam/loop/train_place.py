@@ -33,6 +33,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from vslam.progress import Progress
+
 log = logging.getLogger(__name__)
 
 
@@ -213,8 +215,9 @@ def evaluate(model, sets: dict, with_bow: bool = False) -> dict:
     return evaluate_held_out(desc, sets)
 
 
-def train(cfg: PlaceTrainConfig) -> dict:
-    """Run (or resume) training -> metrics ({} on DDP ranks other than 0; ``vslam.ddp``)."""
+def train(cfg: PlaceTrainConfig, progress: Progress | None = None) -> dict:
+    """Run (or resume) training -> metrics ({} on DDP ranks other than 0; ``vslam.ddp``). ``progress(steps done,
+    steps)`` on rank 0 after each step."""
     import torch
 
     from vslam import ddp
@@ -223,7 +226,7 @@ def train(cfg: PlaceTrainConfig) -> dict:
         cfg = toy_config(cfg)
     torch.set_num_threads(max(1, cfg.threads))
     dev = torch.device("cuda" if cfg.device in ("auto", "cuda") and torch.cuda.is_available() else "cpu")
-    return ddp.launch(dev, functools.partial(_train, cfg))
+    return ddp.launch(dev, functools.partial(_train, cfg, progress=progress))
 
 
 def _resume(last: Path, model, opt, sched, rng: np.random.Generator, dev) -> tuple[int, list[float]]:
@@ -247,7 +250,7 @@ def _resume(last: Path, model, opt, sched, rng: np.random.Generator, dev) -> tup
         return int(ck["step"]), [float(x) for x in ck["history"]]
 
 
-def _train(cfg: PlaceTrainConfig, dev, rank: int, n_ranks: int) -> dict:
+def _train(cfg: PlaceTrainConfig, dev, rank: int, n_ranks: int, progress: Progress | None = None) -> dict:
     import torch
 
     from vslam import ddp
@@ -315,6 +318,8 @@ def _train(cfg: PlaceTrainConfig, dev, rank: int, n_ranks: int) -> dict:
         history.append(loss.item())
         if not lead:
             continue
+        if progress is not None:
+            progress(step, cfg.steps)
         if step % cfg.log_every == 0:
             log.info("step %d/%d loss %.4f (%.2f s/step)", step, cfg.steps, float(np.mean(history[-cfg.log_every:])),
                      (time.perf_counter() - t_train) / step)
@@ -352,7 +357,10 @@ def add_cli(train_sub) -> None:
 def _cmd(args) -> int:
     from vslam.train_cli import train_config
 
-    metrics = train(train_config(PlaceTrainConfig, args))
+    from vslam.progress import progress_bar
+
+    with progress_bar("training", unit="step", quiet=args.quiet) as bar:
+        metrics = train(train_config(PlaceTrainConfig, args), progress=bar)
     if metrics:  # under torchrun only rank 0 evaluates
         print(json.dumps(metrics["eval"], indent=2))
     return 0

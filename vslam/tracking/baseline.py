@@ -127,6 +127,11 @@ class FrameToFrameOdometry:
             raise ValueError("stereo odometry needs cam1 and its extrinsics in the calibration")
 
     # -- features -------------------------------------------------------
+    @property
+    def metric_scale(self) -> bool:
+        """Monocular odometry chains unit-length steps: its scale is arbitrary (scored with Sim3)."""
+        return self.sensor != "mono"
+
     def _features(self, img: np.ndarray, cam: PinholeCamera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """-> raw pixels (N,2), ideal pixels (N,2), descriptors (N,32) uint8."""
         kps, desc = self.orb.detectAndCompute(_gray(img), None)

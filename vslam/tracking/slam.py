@@ -727,6 +727,12 @@ class SlamTracker:
             stats.update(self.lines.stats())
         return stats
 
+    @property
+    def metric_scale(self) -> bool:
+        """Whether the trajectory is in metres: depth, a stereo baseline, or a monocular map the IMU has scaled.
+        A run without it is scored with Sim3 (``EvalConfig.align: auto``)."""
+        return self.sensor != "mono" or (self.vio is not None and self.vio.ready)
+
     def final_poses(self, frame_indices: list[int]) -> np.ndarray | None:
         """(F,4,4) poses of the frames through their reference keyframes when a loop correction or a monocular
         inertial rescale moved the map after they were written (``FrameLog``), else None (the online poses stand)."""
