@@ -53,6 +53,10 @@ def _summary(result: Any, out: Path) -> None:
         print(f"largest map only (map {result.scored_map}, {main['poses']} of {n} frames): {result.eval.summary()}")
     else:
         print(result.eval.summary())
+    for e in [result.eval, *result.map_evals.values()]:
+        if e.scale_warning:
+            print(f"warning: {e.scale_warning}")
+            break
     if "report_html" in result.paths:
         print(f"report: {result.paths['report_html']}")
 

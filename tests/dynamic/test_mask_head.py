@@ -85,7 +85,12 @@ def test_ignore_regions_take_background_anchors_out_of_the_class_loss():
 
 
 def test_the_head_learns_a_constructed_mask():
-    """An L-shaped object: its box holds as much background as object, so the box alone scores IoU ~0.5."""
+    """An L-shaped object: its box holds as much background as object, so the box alone scores IoU 0.53.
+
+    Catches a mask head that does not learn (mask term off or not reaching the prototypes/coefficients: IoU
+    0.30-0.48 over seeds 0-2), a mask loss of the wrong sign (IoU 0.0), and masks misplaced by the crop or the
+    assembly. Measured IoU 1.000 for seeds 0-5, torch threads 1 and 2, with and without
+    torch.use_deterministic_algorithms (the same already at 30 steps); the bound 0.8 sits between."""
     torch.manual_seed(0)
     m = YoloDetector(DetectorConfig(width=0.125, num_classes=1, masks=8))
     s = 64
@@ -103,7 +108,11 @@ def test_the_head_learns_a_constructed_mask():
         opt.zero_grad()
         loss.backward()
         opt.step()
-    recalibrate_bn(m, [x])
+    # BatchNorm statistics of the one training image, recalibrated on 16 copies of it: the same mean and biased
+    # variance as in training, but the unbiased variance eval mode stores is n/(n-1) times that, with n = 4
+    # values per channel on the 2x2 stride-32 map of one 64x64 image (eval then scaled the deep features by
+    # sqrt(3/4) and the IoU fell to 0.53-0.87 by seed and thread count); 16 copies make n = 64.
+    recalibrate_bn(m, [x.expand(16, -1, -1, -1)])
     m.eval()
     with torch.no_grad():
         out = m(x)
@@ -113,7 +122,7 @@ def test_the_head_learns_a_constructed_mask():
         pred = assemble_masks(coef[0, a:a + 1], proto[0], gb[0])[0] > 0
     true = small[0] > 0.5
     iou = float((pred & true).sum() / (pred | true).sum())
-    assert parts["mask"] < 0.1 and iou > 0.85
+    assert parts["mask"] < 0.1 and iou > 0.8, (float(parts["mask"]), iou)  # measured mask loss <= 0.0007
 
 
 def test_instance_masks_map_back_through_the_letterbox():

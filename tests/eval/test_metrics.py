@@ -251,3 +251,45 @@ def test_rpe_equals_evo_rpe_cli(evo_traj_dir, tmp_path, flags, delta, part):
     stats = getattr(ours.rpe[0], part)
     for k in STAT_KEYS:
         assert getattr(stats, k) == pytest.approx(theirs.stats[k], abs=1e-6), k
+
+
+def test_a_metric_run_at_the_wrong_scale_is_warned_about():
+    """Depth in the wrong unit gives a metric run the wrong scale; SE3 then hides it in a larger ATE. The Sim3 scale
+    beside the SE3 score says it (0.2: millimetres read as 1/5000 m); a right scale, a monocular run (Sim3 anyway)
+    and a camera that hardly moves (any scale fits) are not warned about."""
+    from tests.eval._synth import curvy, transformed
+    from vslam.eval import evaluate
+
+    gt = curvy()
+    wrong = evaluate(transformed(gt, np.eye(4), scale=0.2), gt, EvalConfig(align="se3"))
+    assert wrong.scale_fit == pytest.approx(5.0, rel=1e-6)  # evo's s: the estimate is scaled by s onto the truth
+    assert "the trajectory is 0.200x the size of the ground truth" in wrong.scale_warning
+    assert wrong.scale_warning in wrong.notes and wrong.to_dict()["scale_warning"] == wrong.scale_warning
+    right = evaluate(transformed(gt, np.eye(4), scale=1.03), gt, EvalConfig(align="se3"))
+    assert right.scale_fit == pytest.approx(1 / 1.03, rel=1e-6) and right.scale_warning == ""
+    mono = evaluate(transformed(gt, np.eye(4), scale=0.2), gt, monocular=True)
+    assert mono.alignment.method == "sim3" and mono.scale_fit is None and mono.scale_warning == ""
+    still = curvy(length_scale=0.01)  # a few centimetres of motion
+    assert evaluate(transformed(still, np.eye(4), scale=0.5), still, EvalConfig(align="se3")).scale_warning == ""
+
+
+def test_a_runs_kitti_file_is_matched_by_its_times_never_by_row(tmp_path):
+    """A monocular run poses none of the frames before its map exists, so its KITTI file (no time column) has fewer
+    rows than the ground truth has frames; matched line by line it pairs every pose with another frame (0.115 vs
+    0.076 m on KITTI 07). The run writes the rows' times beside it: ``vslam eval`` reads them, and refuses a
+    ground truth without times instead of matching rows."""
+    from vslam.data.trajectory import TrajectoryWriter, kitti_times_path
+    from vslam.eval import evaluate_files
+
+    gt = curvy()
+    with TrajectoryWriter(tmp_path / "trajectory.kitti.txt", "kitti") as w:
+        for t, T in zip(gt.timestamps[5:], gt.poses[5:]):  # the first 5 frames had no pose
+            w.write(t, T)
+    times = kitti_times_path(tmp_path / "trajectory.kitti.txt")
+    assert times.name == "trajectory.kitti.times.txt" and len(times.read_text().split()) == len(gt) - 5
+    write_trajectory(tmp_path / "gt_kitti.txt", gt.subset(np.arange(len(gt) - 5)), "kitti")  # as many rows
+    (tmp_path / "gt_times.txt").write_text("\n".join(f"{t:.6f}" for t in gt.timestamps[:-5]) + "\n")
+    with pytest.raises(EvalError, match="--gt-times"):
+        evaluate_files(tmp_path / "trajectory.kitti.txt", tmp_path / "gt_kitti.txt")
+    res = evaluate_files(tmp_path / "trajectory.kitti.txt", tmp_path / "gt_kitti.txt", gt_times=tmp_path / "gt_times.txt")
+    assert res.matched_by == "time" and res.n_matched == len(gt) - 10 and res.ate.translation.rmse < 1e-5

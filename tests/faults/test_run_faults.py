@@ -54,7 +54,7 @@ def test_earlier_run_files_do_not_stay_beside_a_new_run(cli, tum40, tmp_path, ca
     assert rc == 0, err
     assert "no ground truth" in stdout
     left = sorted(p.name for p in out.iterdir())
-    assert left == ["config.yaml", "keyframes.tum.txt", "map.ply", "notes.txt", "stats.csv", "trajectory.kitti.txt",
+    assert left == ["config.yaml", "keyframes.tum.txt", "map.ply", "notes.txt", "stats.csv", "trajectory.kitti.times.txt", "trajectory.kitti.txt",
                     "trajectory.tum.txt"]
     assert "from the earlier" not in (out / "keyframes.tum.txt").read_text()
     assert "held an earlier run: removed" in caplog.text

@@ -22,8 +22,11 @@ import numpy as np
 
 from vslam.data.calibration import check_camera
 from vslam.data.camera_file import CAMERA_FILE_NAME, CameraFile, read_camera_file
+from vslam.data.association import check as check_pairing
+from vslam.data.association import check_depth_image, no_pairs_text
+from vslam.data.association import report as pairing_report
 from vslam.data.tum import associate
-from vslam.data.types import Calibration, Frame, ImuSamples, PinholeCamera, SensorKind, Sequence
+from vslam.data.types import Association, Calibration, Frame, ImuSamples, PinholeCamera, SensorKind, Sequence
 from vslam.errors import DatasetError
 
 logger = logging.getLogger(__name__)
@@ -195,18 +198,26 @@ class BagSequence(Sequence):
         self._t = self._conns["image"][1]
         self._depth_of: list[int] | None = None
         if self.sensor == "rgbd":
-            self._conns["depth"] = self._scan(reader, cast(str, self._topic(reader, "depth", True)))
-            ia, ib = associate(self._t, self._conns["depth"][1], max_diff)
+            depth_topic, t_depth, _ = self._conns["depth"] = self._scan(reader, cast(str, self._topic(reader, "depth", True)))
+            ia, ib = associate(self._t, t_depth, max_diff)
             if len(ia) == 0:
-                raise DatasetError(self.path, f"no image has a depth image within {max_diff:g} s")
+                raise DatasetError(self.path, no_pairs_text(self._t, t_depth, "image", "depth", f"within {max_diff:g} s",
+                                                            f"topic {depth_topic}") + "; check the timestamps, or run with --sensor mono")
             self._depth_of = [-1] * len(self._t)
             for i, j in zip(ia, ib):
                 self._depth_of[i] = int(j)
+            self.association = pairing_report("rgb-depth", self._t, [f"{image} at {t:.6f} s" for t in self._t], t_depth,
+                                              ia, ib, max_diff, f"no depth image within {max_diff:g} s",
+                                              unpaired_kept=True)
+            check_pairing(self.association, self._t, t_depth, ia, ib, f"{self.path}: {depth_topic}", "image",
+                          "depth", logger)
         if self.sensor == "stereo":
             self._conns["right"] = self._scan(reader, cast(str, self._topic(reader, "right", True)))
             if len(self._conns["right"][1]) != len(self._t) or np.abs(self._conns["right"][1] - self._t).max() > 1e-6:
                 raise DatasetError(self.path, "right images' stamps differ from the left images' (a synchronised "
                                               "pair has the same stamp)")
+            self.association = Association("left-right", len(self._t), len(self._t), partners=len(self._t),
+                                           unpaired_kept=False)
         self._imu = self._read_imu(reader)
         cf = self._camera_file(camera)
         try:
@@ -226,6 +237,20 @@ class BagSequence(Sequence):
             if self.sensor == "rgbd" and cf.depth_scale is None:
                 cf = CameraFile(**{**cf.__dict__, "depth_scale": ROS_DEPTH_SCALE})
             self.calibration = cf.calibration(first.shape[1], first.shape[0], self.sensor, image=self.path)
+        if self._depth_of is not None:  # depth no frame can use is refused here, not skipped frame by frame
+            j = next(j for j in self._depth_of if j >= 0)
+            try:
+                raw: np.ndarray | None = self._decode("depth", j, reader)
+            except ValueError as e:  # an encoding vslam does not read is refused; a message that does not
+                if "not supported" not in str(e):  # decode is skipped later, with its warning
+                    raw = None
+                else:
+                    topic = self._conns["depth"][0]
+                    raise DatasetError(self.path, f"topic {topic}, first depth image: "
+                                                  f"{str(e).removeprefix(f'{self.path}:{topic}: ')}") from None
+            check_depth_image(Path(f"{self.path}:{self._conns['depth'][0]}"), raw, (first.shape[1], first.shape[0]),
+                              (np.uint16, np.float32), "16UC1 (depth_scale units per metre, default millimetres) or "
+                              "32FC1 (metres) depth", "images")
 
     def _camera_file(self, camera: str | Path | None) -> CameraFile | None:
         if camera:

@@ -29,6 +29,9 @@ from typing import Any, cast
 import cv2
 import numpy as np
 
+from vslam.data.association import check as check_pairing
+from vslam.data.association import no_pairs_text
+from vslam.data.association import report as pairing_report
 from vslam.data.calibration import check_calibration, check_camera, check_image_size, image_file_size
 from vslam.data.textio import (check_increasing, check_unit_quaternions, read_rows, read_yaml_mapping, require_dir,
                                require_file, yaml_numbers)
@@ -291,9 +294,17 @@ class EurocSequence(Sequence):
             cam1_model, T_b_c1 = read_camera_yaml(cam1_dir / "sensor.yaml")
             keep0 = np.flatnonzero(np.isin(cam0.ns, cam1.ns))
             keep1 = np.searchsorted(cam1.ns, cam0.ns[keep0])
+            t0, t1 = ns_to_s(cam0.ns), ns_to_s(cam1.ns)
+            if len(keep0) == 0:
+                raise DatasetError(cam1.csv, no_pairs_text(t0, t1, "cam0", "cam1", "with the same timestamp",
+                                                           "cam1/data.csv") + "; check the timestamps, or run with --sensor mono")
+            names = [str(f.relative_to(self.mav0)) for f in cam0.files]
+            self.association = pairing_report("left-right", t0, names, t1, keep0, keep1, 0.0,
+                                              "no cam1 image with the same timestamp", unpaired_kept=False)
             dropped = (len(cam0.ns) - len(keep0), len(cam1.ns) - len(keep1))
             if any(dropped):
                 logger.info("%s: %d cam0 and %d cam1 images have no partner; stereo keeps %d frames", self.mav0, *dropped, len(keep0))
+            check_pairing(self.association, t0, t1, keep0, keep1, cam0.csv, "cam0 (left)", "cam1 (right)", logger)
             # Existence is checked only for the frames kept: EuRoC cam lists may
             # name unpaired images that the archive does not hold.
             _check_listed(cam1, keep1)

@@ -23,8 +23,11 @@ import numpy as np
 
 from vslam.data.camera_file import CAMERA_FILE_NAME, CameraFile, read_camera_file
 from vslam.data.textio import check_increasing, read_rows
+from vslam.data.association import check as check_pairing
+from vslam.data.association import check_depth_image, no_pairs_text
+from vslam.data.association import report as pairing_report
 from vslam.data.tum import associate
-from vslam.data.types import Frame, SensorKind, Sequence
+from vslam.data.types import Association, Frame, SensorKind, Sequence
 from vslam.errors import DatasetError
 
 logger = logging.getLogger(__name__)
@@ -156,6 +159,11 @@ class ImageFolderSequence(Sequence):
             raise DatasetError(folder, f"none of the {len(self._files)} images decodes (first: {self._files[0].name})")
         self.calibration = cf.calibration(first.shape[1], first.shape[0], sensor, image=self._files[k])
         self._first = k
+        if self._depth is not None:  # depth no frame can use is refused here, not skipped frame by frame
+            d = next(f for f in self._depth if f is not None)
+            check_depth_image(d, cv2.imread(str(d), cv2.IMREAD_UNCHANGED), (first.shape[1], first.shape[0]),
+                              (np.uint16,), f"16-bit single-channel depth (uint16, {cf.depth_scale:g} units per "
+                              "metre: depth_scale in the camera file)", "colour images")
 
     def _check_camera_file(self) -> None:
         cf = self.camera_file
@@ -175,6 +183,7 @@ class ImageFolderSequence(Sequence):
             raise DatasetError(folder, "no depth images in the depth folder")
         by_name = {f.name: f for f in files}
         if all(f.name in by_name for f in self._files):
+            self.association = Association("rgb-depth", len(self._files), len(self._files), partners=len(files))
             return [by_name[f.name] for f in self._files]
         t_depth = [parse_time(f.stem) for f in files]
         if any(t is None for t in t_depth) or not all(parse_time(f.stem) is not None for f in self._files):
@@ -184,13 +193,17 @@ class ImageFolderSequence(Sequence):
         td = np.asarray(t_depth, np.float64)[order]
         ia, ib = associate(self._t, td, max_diff)
         if len(ia) == 0:
-            raise DatasetError(folder, f"no colour image has a depth image within {max_diff:g} s")
+            raise DatasetError(folder, no_pairs_text(self._t, td, "colour", "depth", f"within {max_diff:g} s",
+                                                     "the depth folder") + "; check the timestamps, or run with --sensor mono")
         out: list[Path | None] = [None] * len(self._files)
         for i, j in zip(ia, ib):
             out[i] = files[order[j]]
         if len(ia) < len(out):
             logger.info("%s: %d of %d images have a depth image within %.3f s; the others get depth=None",
                         folder, len(ia), len(out), max_diff)
+        self.association = pairing_report("rgb-depth", self._t, [f.name for f in self._files], td, ia, ib, max_diff,
+                                          f"no depth image within {max_diff:g} s", unpaired_kept=True)
+        check_pairing(self.association, self._t, td, ia, ib, folder, "colour", "depth", logger)
         return out
 
     def _pair_right(self, folder: Path) -> list[Path]:
@@ -199,6 +212,8 @@ class ImageFolderSequence(Sequence):
         missing = next((f for f in self._files if not (folder / f.name).is_file()), None)
         if missing is not None:
             raise DatasetError(folder / missing.name, "missing right image (right images must have the left names)")
+        self.association = Association("left-right", len(self._files), len(self._files), partners=len(self._files),
+                                       unpaired_kept=False)
         return [folder / f.name for f in self._files]
 
     # -- Sequence interface ------------------------------------------------------------

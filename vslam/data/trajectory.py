@@ -151,9 +151,20 @@ def write_trajectory(path: str | Path, traj: Trajectory, fmt: str = "tum") -> Pa
     return path
 
 
+def kitti_times_path(path: str | Path) -> Path:
+    """The times file written beside a KITTI pose file: ``trajectory.kitti.txt`` -> ``trajectory.kitti.times.txt``."""
+    path = Path(path)
+    return path.with_name(path.name[: -len(path.suffix)] + ".times" + path.suffix if path.suffix else path.name + ".times")
+
+
 class TrajectoryWriter:
     """Appends poses to a file as they are produced and flushes each line,
-    so a crash or Ctrl-C never loses the trajectory computed so far."""
+    so a crash or Ctrl-C never loses the trajectory computed so far.
+
+    KITTI pose files have no time column and a run does not pose every frame (a monocular map starts after its
+    first frames, a lost frame has no pose): the times of the written poses go, line for line, to
+    ``kitti_times_path(path)`` (KITTI's times.txt format) so the file can be matched by time, not by row.
+    """
 
     def __init__(self, path: str | Path, fmt: str = "tum"):
         if fmt not in FORMATS:
@@ -162,6 +173,8 @@ class TrajectoryWriter:
         self.fmt = fmt
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._f: TextIO | None = open(self.path, "w")
+        self.times_path = kitti_times_path(self.path) if fmt == "kitti" else None
+        self._times: TextIO | None = open(self.times_path, "w") if self.times_path is not None else None
         if fmt == "tum":
             self._f.write("# timestamp tx ty tz qx qy qz qw\n")
         elif fmt == "euroc":
@@ -172,11 +185,17 @@ class TrajectoryWriter:
         assert self._f is not None, "writer is closed"
         self._f.write(format_pose(t, T_world_cam, self.fmt) + "\n")
         self._f.flush()
+        if self._times is not None:
+            self._times.write(f"{t:.6f}\n")
+            self._times.flush()
 
     def close(self) -> None:
         if self._f is not None:
             self._f.close()
             self._f = None
+        if self._times is not None:
+            self._times.close()
+            self._times = None
 
     def __enter__(self) -> TrajectoryWriter:
         return self

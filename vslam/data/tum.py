@@ -25,6 +25,9 @@ from typing import cast
 import cv2
 import numpy as np
 
+from vslam.data.association import check as check_pairing
+from vslam.data.association import check_depth_image, no_pairs_text
+from vslam.data.association import report as pairing_report
 from vslam.data.calibration import check_calibration, check_image_size, image_file_size
 from vslam.data.euroc import parse_distortion_model
 from vslam.data.textio import check_increasing, read_numeric, read_rows, read_yaml_mapping, require_dir, require_file
@@ -170,13 +173,16 @@ class TumRgbdSequence(Sequence):
             t_depth, depth_files = read_file_list(root / "depth.txt", root, "depth.txt")
             ia, ib = associate(t_rgb, t_depth, self.max_diff)
             if len(ia) == 0:
-                span = f"depth {t_depth[0]:.3f}-{t_depth[-1]:.3f} s" if len(t_depth) else "no depth images"
-                raise DatasetError(root / "depth.txt", f"no rgb image has a depth image within {self.max_diff:g} s "
-                                   f"(rgb {t_rgb[0]:.3f}-{t_rgb[-1]:.3f} s, {span}); check the two lists' "
-                                   "timestamps, or run with --sensor mono")
+                raise DatasetError(root / "depth.txt", no_pairs_text(
+                    t_rgb, t_depth, "rgb", "depth", f"within {self.max_diff:g} s", "depth.txt")
+                    + "; check the two lists' timestamps, or run with --sensor mono")
+            names = [str(f.relative_to(root)) for f in rgb_files]
+            self.association = pairing_report("rgb-depth", t_rgb, names, t_depth, ia, ib, self.max_diff,
+                                              f"no depth image within {self.max_diff:g} s", unpaired_kept=True)
             if len(ia) < len(t_rgb):
                 logger.info("%s: %d of %d rgb images have a depth image within %.3f s; the others get depth=None",
                             root, len(ia), len(t_rgb), max_diff)
+            check_pairing(self.association, t_rgb, t_depth, ia, ib, root / "depth.txt", "rgb", "depth", logger)
             # Every rgb image stays a frame (a pose per input image); one without a depth partner has depth=None.
             self._depth: list[Path | None] | None = [None] * len(t_rgb)
             for i, j in zip(ia, ib):
@@ -186,6 +192,12 @@ class TumRgbdSequence(Sequence):
         self._t = t_rgb
         self._rgb = list(rgb_files)
         self.calibration = self._read_calibration(root)
+        if self._depth is not None:  # depth no frame can use is refused here, not skipped frame by frame
+            first = next(f for f in self._depth if f is not None)
+            cam = self.calibration.cam0
+            check_depth_image(first, cv2.imread(str(first), cv2.IMREAD_UNCHANGED), (cam.width, cam.height),
+                              (np.uint16,), f"16-bit single-channel depth (uint16, {self.calibration.depth_scale:g} "
+                              "units per metre)", "rgb images")
 
         gt_path = root / "groundtruth.txt"
         # A ground-truth problem is raised by groundtruth(), after a run has written its trajectory: it must

@@ -168,6 +168,51 @@ class Frame:
     boxes: np.ndarray | None = None
 
 
+@dataclass
+class Association:
+    """How a reader paired a second image stream with its frames when the sequence was opened
+    (``Sequence.association``; ``vslam.data.association`` checks it and warns).
+
+    kind: "rgb-depth" (TUM, image folder, bag: nearest time within ``max_offset_s``, one to one) or
+        "left-right" (EuRoC stereo: the same timestamp).
+    inputs: images of the frame stream listed (rgb / left); partners: images of the other stream listed.
+    paired: inputs given a partner. ``dropped``: (file, or time for a bag, why) of each input given none.
+    unpaired_kept: True where an input without a partner stays a frame (rgb-depth: a frame without depth),
+        False where it is not a frame (left-right: ``len(sequence) == paired``).
+    max_offset_s: the pairing tolerance (0: equal times). median_offset_s: median of (partner - input) time
+        over the pairs. shift_s: a constant shift of the partner stream's times that the reader suspects (and
+        warned about), else None.
+    """
+
+    kind: Literal["rgb-depth", "left-right"]
+    inputs: int
+    paired: int
+    dropped: list[tuple[str, str]] = field(default_factory=list)
+    partners: int = 0
+    unpaired_kept: bool = True
+    max_offset_s: float = 0.0
+    median_offset_s: float | None = None
+    shift_s: float | None = None
+
+    @property
+    def drop_rate(self) -> float:
+        """Fraction of the inputs left without a partner."""
+        return len(self.dropped) / self.inputs if self.inputs else 0.0
+
+    def summary(self) -> str:
+        """One line for a run's summary, e.g. ``rgb-depth pairing: 40 rgb images, 37 with depth within 0.02 s,
+        3 without (kept as frames without depth; first: rgb/1.png, no depth image within 0.02 s)``."""
+        a, b = ("rgb", "depth") if self.kind == "rgb-depth" else ("left", "right")
+        within = f"within {self.max_offset_s:g} s" if self.max_offset_s > 0 else "at the same time"
+        text = f"{self.kind} pairing: {self.inputs} {a} images, {self.paired} with {b} {within}"
+        if self.dropped:
+            fate = "kept as frames without depth" if self.unpaired_kept else "dropped"
+            text += f", {len(self.dropped)} without ({fate}; first: {self.dropped[0][0]}, {self.dropped[0][1]})"
+        if self.shift_s is not None:
+            text += f"; {b} times look shifted by {self.shift_s:+.3f} s"
+        return text
+
+
 class Sequence(abc.ABC):
     """A recorded (or generated) sequence; iterate it to get Frames in time order.
 
@@ -180,6 +225,9 @@ class Sequence(abc.ABC):
     name: str
     sensor: SensorKind
     calibration: Calibration
+    # how a second stream (depth, right images) was paired with the frames when the sequence opened; None for
+    # a reader that pairs nothing (or a sensor that needs no second stream)
+    association: Association | None = None
 
     @abc.abstractmethod
     def __len__(self) -> int:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vslam.data.trajectory import FORMATS, Trajectory, guess_format, read_trajectory
+from vslam.data.trajectory import FORMATS, Trajectory, guess_format, kitti_times_path, read_trajectory
 from vslam.errors import DatasetError, EvalError
 from vslam.eval.associate import associate
 from vslam.eval.config import EvalConfig
@@ -16,6 +16,14 @@ from vslam.eval.metrics import DeltaNotApplicable, RpeSeries, RpeStats, align, a
 from vslam.eval.result import EvalArrays, EvalResult
 
 logger = logging.getLogger(__name__)
+
+# A metric run (RGB-D, stereo, scaled VIO) whose Sim3 scale against the ground truth is off by more than this
+# has a unit or calibration wrong (depth in mm read as 1/5000 m gives 5x); good runs fit within 1 % (TUM teddy
+# RGB-D 1.0014). Judged only where the scale is observable: the ground truth spreads over SCALE_MIN_SPREAD_M and
+# over SCALE_SPREAD_PER_ATE times the Sim3-aligned ATE (a nearly still camera fits any scale).
+SCALE_WARN = 0.10
+SCALE_MIN_SPREAD_M = 0.2
+SCALE_SPREAD_PER_ATE = 20.0
 
 
 def evaluate(
@@ -61,6 +69,11 @@ def evaluate(
         rpe_stats.append(stats)
         rpe_series[stats.label] = series
 
+    scale_fit, scale_warning = _scale_check(assoc, method, monocular)
+    if scale_warning:
+        notes.append(scale_warning)
+        logger.warning("%s", scale_warning)
+
     kitti, kitti_reason = kitti_odometry_error(assoc.gt.poses, assoc.est.poses, cfg.kitti_lengths, cfg.kitti_step)
     if method == "se3" and monocular:
         notes.append("SE3 alignment of a trajectory without metric scale (monocular): its scale error counts in the "
@@ -89,10 +102,30 @@ def evaluate(
         gt_length_m=assoc.gt.path_length(),
         est_length_m=float(np.linalg.norm(np.diff(est_xyz, axis=0), axis=1).sum()),
         notes=notes,
+        scale_fit=scale_fit,
+        scale_warning=scale_warning,
         arrays=EvalArrays(t=t, gt_xyz=assoc.gt.positions.copy(), est_xyz=est_xyz, ate_t=ate_t, ate_r=ate_r, rpe=rpe_series),
     )
     logger.info("%s", result.summary())
     return result
+
+
+def _scale_check(assoc, method: str, monocular: bool) -> tuple[float | None, str]:
+    """(Sim3 scale of an SE3-scored metric run, a warning when it is far from 1 where the scale is observable)."""
+    if method != "se3" or monocular or len(assoc) < 3:
+        return None, ""
+    try:
+        fit, gt_evo, est_evo = align(assoc, "sim3")
+    except EvalError:
+        return None, ""
+    s = fit.s
+    gt_xyz, est_xyz = np.asarray(gt_evo.positions_xyz), np.asarray(est_evo.positions_xyz)
+    sim3_rmse = float(np.sqrt(np.mean(np.sum((gt_xyz - est_xyz) ** 2, axis=1))))
+    spread = float(np.sqrt(np.mean(np.sum((gt_xyz - gt_xyz.mean(axis=0)) ** 2, axis=1))))
+    if abs(s - 1.0) <= SCALE_WARN or spread < max(SCALE_MIN_SPREAD_M, SCALE_SPREAD_PER_ATE * sim3_rmse):
+        return s, ""
+    return s, (f"the trajectory is {1.0 / s:.3f}x the size of the ground truth (Sim3 scale {s:.3f}) although the run "
+               "is metric: check the depth unit (depth scale), the stereo baseline or the camera calibration")
 
 
 def evaluate_files(
@@ -110,12 +143,20 @@ def evaluate_files(
 
     KITTI pose files have no timestamps: give ``*_times`` (one time per line)
     to associate by time, else a KITTI file is matched with the other line by
-    line, as ``evo_ape kitti`` and the devkit do. User mistakes (missing file,
+    line, as ``evo_ape kitti`` and the devkit do -- only when both have as many
+    rows (else EvalError: the rows would be different frames). ``vslam run``
+    writes the times of its KITTI file beside it (``kitti_times_path``): they are
+    read when no ``est_times`` is given, and such a file (the frames a run posed)
+    is never matched by line. User mistakes (missing file,
     unknown format, no overlap) raise DatasetError/EvalError with one line.
     """
     est_path, gt_path = Path(est_path), Path(gt_path)
     est_fmt = _resolve_format(est_path, est_format)
     gt_fmt = _resolve_format(gt_path, gt_format)
+    sidecar = None  # the times `vslam run` wrote beside its KITTI file: used when none are given
+    if est_fmt == "kitti" and est_times is None and kitti_times_path(est_path).is_file():
+        sidecar = est_times = kitti_times_path(est_path)
+        logger.info("times of %s from %s", est_path.name, sidecar.name)
     est = _read(est_path, est_fmt, est_times)
     gt = _read(gt_path, gt_fmt, gt_times)
     est_untimed = est_fmt == "kitti" and est_times is None
@@ -128,6 +169,12 @@ def evaluate_files(
             "give its times file to match by time (vslam eval --times FILE for the estimate, --gt-times FILE "
             "for the ground truth)"
         )
+    if sidecar is not None and gt_untimed:
+        # a run's KITTI file holds the frames it posed, not every frame: its rows are not the ground truth's
+        raise EvalError(
+            f"{est_path.name} holds the frames the run posed (a monocular start and lost frames have no row), so its "
+            f"rows are not {gt_path.name}'s frames; match by time: give the ground truth's times (--gt-times FILE, "
+            f"KITTI's times.txt; the estimate's are read from {sidecar.name})")
     # Two KITTI files where only one has times: match by line, use those times as the time axis.
     seconds = not (est_untimed and gt_untimed)
     if by_index and gt_untimed and not est_untimed and len(est) == len(gt):

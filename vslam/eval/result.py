@@ -63,6 +63,9 @@ class EvalResult:
     gt_length_m: float
     est_length_m: float
     notes: list[str] = field(default_factory=list)
+    # an SE3-scored (metric) run's Sim3 scale, and a warning when it is far from 1 (a wrong unit)
+    scale_fit: float | None = None
+    scale_warning: str = ""
     arrays: EvalArrays | None = None
 
     def to_dict(self) -> dict[str, Any]:
@@ -87,6 +90,8 @@ class EvalResult:
             "gt_length_m": self.gt_length_m,
             "est_length_m": self.est_length_m,
             "notes": list(self.notes),
+            "scale_fit": self.scale_fit,
+            "scale_warning": self.scale_warning,
         }
 
     @classmethod
@@ -113,6 +118,8 @@ class EvalResult:
             gt_length_m=d["gt_length_m"],
             est_length_m=d["est_length_m"],
             notes=list(d["notes"]),
+            scale_fit=d.get("scale_fit"),
+            scale_warning=d.get("scale_warning", ""),
         )
 
     def ate_text(self) -> str:
