@@ -26,6 +26,7 @@ class Terminal(io.StringIO):
 @pytest.fixture(autouse=True)
 def _no_env(monkeypatch):
     monkeypatch.delenv("VSLAM_PROGRESS", raising=False)
+    monkeypatch.delenv("RANK", raising=False)
 
 
 def _lines(text: str) -> list[str]:
@@ -37,6 +38,10 @@ def test_on_for_a_terminal_off_for_a_log_quiet_or_env(monkeypatch):
     assert bar_enabled(stream=Terminal())
     assert not bar_enabled(stream=io.StringIO())  # a log file, a pipe, CI
     assert not bar_enabled(quiet=True, stream=Terminal())
+    monkeypatch.setenv("RANK", "1")  # torchrun: rank 0 alone draws the training's bar
+    assert not bar_enabled(stream=Terminal())
+    monkeypatch.setenv("RANK", "0")
+    assert bar_enabled(stream=Terminal())
     monkeypatch.setenv("VSLAM_PROGRESS", "0")
     assert not bar_enabled(stream=Terminal())
     log = io.StringIO()
@@ -120,7 +125,7 @@ def test_bench_jobs_report_each_job(monkeypatch):
 def test_vslam_run_in_a_terminal_shows_the_bar(tmp_path):
     """The real command in a pseudo-terminal (unsized, as `script` gives from a pipe): the bar's last line stays."""
     master, slave = pty.openpty()
-    env = {k: v for k, v in os.environ.items() if k != "VSLAM_PROGRESS"}
+    env = {k: v for k, v in os.environ.items() if k not in ("VSLAM_PROGRESS", "RANK")}
     root = Path(__file__).resolve().parents[1]
     env["PYTHONPATH"] = os.pathsep.join([str(root)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
     small = [f"dataset.synthetic.{k}={v}" for k, v in (("width", 160), ("height", 120), ("fx", 131.25), ("fy", 131.25))]

@@ -37,6 +37,8 @@ def _summary(result: Any, out: Path) -> None:
         unposed += f", {len(skipped)} skipped (did not decode: frame {shown})"
     print(f"frames: {n} read, {posed} posed ({int(result.tracked.sum())} tracked){unposed}; "
           f"{result.fps:.1f} frames/s{dropped}")
+    if result.association is not None:  # the recording's pairing: what was used, what was dropped and why
+        print(result.association.summary())
     print(f"trajectory: {result.paths.get('trajectory_tum', out)}")
     if result.eval is None:
         print(f"not evaluated: {result.eval_skipped}" if result.eval_skipped else "no ground truth: trajectory not evaluated")
@@ -371,8 +373,29 @@ def _os_error_line(e: OSError) -> str:
     return f"{where}{why}"
 
 
+def _parse(argv: list[str] | None) -> argparse.Namespace | int:
+    """The arguments, or 130 for a Ctrl-C while the subcommands' modules load."""
+    try:
+        return build_parser().parse_args(argv)
+    except KeyboardInterrupt:
+        return 130
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    interrupted: list[bool] = []  # Ctrl-C seen, even where a library turned it into another exception or ate it
+    sigint = _watch_sigint(interrupted)
+    try:
+        return _main(argv, interrupted)
+    finally:
+        if sigint is not None:
+            signal.signal(signal.SIGINT, sigint)
+
+
+def _main(argv: list[str] | None, interrupted: list[bool]) -> int:
+    args = _parse(argv)
+    if isinstance(args, int) or interrupted:  # a Ctrl-C while the modules load, whatever caught it
+        print("vslam: interrupted", file=sys.stderr)
+        return 130
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     logging.captureWarnings(True)
@@ -381,7 +404,11 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError:  # not the main thread (main() called from a thread): leave SIGTERM as it is
         previous = None
     try:
-        return args.fn(args)
+        code = args.fn(args)
+        if interrupted:  # a Ctrl-C some library caught: the run did not end as it would have
+            print("vslam: interrupted (outputs written so far are kept)", file=sys.stderr)
+            return 130
+        return code
     except VslamError as e:
         print(f"vslam: error: {e}", file=sys.stderr)
         return 2
@@ -392,9 +419,15 @@ def main(argv: list[str] | None = None) -> int:
         print("vslam: interrupted (outputs written so far are kept)", file=sys.stderr)
         return 130
     except OSError as e:  # an output that cannot be written, a device that fails: the system's words, one line
+        if interrupted:
+            print("vslam: interrupted (outputs written so far are kept)", file=sys.stderr)
+            return 130
         print(f"vslam: error: {_os_error_line(e)}", file=sys.stderr)
         return 2
     except Exception as e:  # a bug, not a user mistake: say so in one line; -v shows where
+        if interrupted:  # Ctrl-C inside an import or a library that re-raised it as its own error (ImportError)
+            print("vslam: interrupted (outputs written so far are kept)", file=sys.stderr)
+            return 130
         if args.verbose:
             traceback.print_exc()
         print(f"vslam: internal error: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''} "
@@ -403,6 +436,20 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+def _watch_sigint(seen: list[bool]) -> Any:
+    """SIGINT raises KeyboardInterrupt as Python's own handler does, and is remembered in ``seen``: a Ctrl-C that
+    lands inside an import can surface as an ImportError, which must still end as an interrupt. Returns the
+    previous handler (None: not the main thread, nothing changed)."""
+    def on_sigint(signum: int, frame: Any) -> None:
+        seen.append(True)
+        raise KeyboardInterrupt
+
+    try:
+        return signal.signal(signal.SIGINT, on_sigint)
+    except ValueError:
+        return None
 
 
 if __name__ == "__main__":

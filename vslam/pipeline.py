@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import json
 import logging
 import pickle
@@ -120,6 +121,8 @@ class RunResult:
     eval_skipped: str = ""
     # indices of the frames the reader could not decode (skipped with a warning; no stats.csv row)
     skipped: list[int] = field(default_factory=list)
+    # how the reader paired rgb with depth / left with right over the recording (None: nothing to pair)
+    association: Any = None
 
     @property
     def fps(self) -> float:
@@ -151,7 +154,8 @@ class RunResult:
         return {"frames": n, "skipped": len(self.skipped), "posed": posed, "posed_fraction": posed / n if n else 0.0,
                 "tracked": int(self.tracked.sum()), "metric_scale": self.metric_scale,
                 "scored": "whole run" if self.scored_map is None else f"largest map ({self.scored_map})",
-                "scored_map": self.scored_map, "maps": self.maps_summary()}
+                "scored_map": self.scored_map, "maps": self.maps_summary(),
+                "association": dataclasses.asdict(self.association) if self.association is not None else None}
 
 
 def open_dataset(cfg: DatasetConfig) -> Sequence:
@@ -565,7 +569,11 @@ class Pipeline:
         result.metric_scale = bool(odo.metric_scale)
         if not live:
             result.skipped = _skipped_frames(seq, [int(r["index"]) for r in stats], n_total)
-        if stats and not any(tracked):
+        result.association = getattr(seq, "association", None)
+        if not stats:  # nothing reached the tracker: every frame failed to decode, or the selection kept none
+            why = f"; {len(result.skipped)} did not decode" if result.skipped else ""
+            result.error = TrackingError(f"no frame of {seq.name} was read{why}: nothing to track")
+        elif not any(tracked):
             # no map was ever made (or only predicted poses): not a result, whatever was written
             result.error = TrackingError(
                 f"no frame of {len(stats)} was tracked: {paths.get('trajectory_tum', out)} holds no measured pose "

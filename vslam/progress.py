@@ -19,8 +19,9 @@ OFF = ("0", "false", "no", "off")  # values of VSLAM_PROGRESS that turn the bar 
 
 
 def bar_enabled(quiet: bool = False, stream: TextIO | None = None) -> bool:
-    """A bar is shown: not --quiet, not VSLAM_PROGRESS=0, and ``stream`` (default stderr) is a terminal."""
-    if quiet or os.environ.get("VSLAM_PROGRESS", "").strip().lower() in OFF:
+    """A bar is shown: not --quiet, not VSLAM_PROGRESS=0, not a torchrun rank other than 0 (they share the
+    terminal; rank 0 reports the steps), and ``stream`` (default stderr) is a terminal."""
+    if quiet or os.environ.get("VSLAM_PROGRESS", "").strip().lower() in OFF or os.environ.get("RANK", "0") != "0":
         return False
     stream = sys.stderr if stream is None else stream
     try:

@@ -104,7 +104,12 @@ def test_nms_matches_reference_greedy():
 
 
 def test_toy_training_reduces_loss_and_detects(tmp_path):
-    """Overfit two tiny images on CPU: the loss falls and the detector finds the training box again."""
+    """Overfit two tiny images on CPU: the loss falls and the detector finds the training box again.
+
+    Catches a loss that does not train the detector (wrong sign, a broken gradient: the loss ratio stays near 1),
+    box regression or decoding gone wrong (IoU), classes swapped, and a checkpoint that does not load back what was
+    trained. Measured over seeds 0-5, torch threads 1 and 2, with and without torch.use_deterministic_algorithms:
+    loss ratio 0.10-0.17 (bound 0.3), top score 0.70-0.97 (conf 0.3), IoU 0.945-0.985 (bound 0.7)."""
     torch.manual_seed(0)
     m = YoloDetector(DetectorConfig(attention="esea", **TINY))
     img = np.full((64, 96, 3), 40, np.uint8)
@@ -121,14 +126,17 @@ def test_toy_training_reduces_loss_and_detects(tmp_path):
         opt.step()
         losses.append(float(loss.detach()))
     assert np.mean(losses[-5:]) < 0.3 * np.mean(losses[:3])
-    recalibrate_bn(m, [x])
+    # BatchNorm statistics over 16 copies of the training image: the batch statistics it was trained with (eval
+    # mode stores the unbiased variance, n/(n-1) of the trained one: n = 12 values per channel on the 2x3 stride-32
+    # maps of this batch of 2, which scaled the deep features enough to drop the score to 0-0.38)
+    recalibrate_bn(m, [x.repeat(8, 1, 1, 1)])
     path = save_checkpoint(tmp_path / "toy.pt", m, ["block", "other"], img_size=96)
-    det = load_detector(path, conf=0.1)
+    det = load_detector(path, conf=0.3)
     assert isinstance(det, Detector) and det.img_size == 96
     d = det.detect(img)
     assert len(d.boxes) >= 1 and d.class_names[0] == "block"
     iou = float(box_iou(torch.tensor(d.boxes[:1]), gb[0]))
-    assert iou > 0.5, (d.boxes, d.scores)
+    assert iou > 0.7, (d.boxes, d.scores)
 
 
 def test_letterbox_pads_to_stride():

@@ -345,3 +345,18 @@ def test_imu_spikes_through_the_cli_are_a_warning_not_a_wrong_trajectory(cli, tm
     assert len(gate) == 1 and "(3 range)" in gate[0] and "imu0/data.csv line " in gate[0]
     ate = json.loads((out / "report" / "metrics.json").read_text())["ate"]["translation_m"]["rmse"]
     assert ate < 0.0012  # measured 0.00084 m (the clean run: 0.0008 m); believed, 1e6 spikes fly it off by km
+
+
+@pytest.mark.parametrize("delay", [0.5, 1.0, 2.0])
+def test_ctrl_c_in_the_first_seconds_is_one_line_and_130(tmp_path, delay):
+    """Ctrl-C while the command loads its modules (torch, pycolmap, gtsam: ~1-3 s) printed a 36-line KeyboardInterrupt
+    traceback or ``internal error: ImportError`` (an import interrupted half way); it must end like any interrupt.
+    The delays start after ``import vslam.cli`` (about 0.1 s), inside the subcommands' imports and the run's start."""
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "vslam.cli", "run", "--max-frames", "200", "-o", str(out)]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    time.sleep(delay)
+    os.killpg(p.pid, signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    lines = [ln for ln in err.decode().splitlines() if ln.strip()]
+    assert p.returncode == 130 and len(lines) == 1 and lines[0].startswith("vslam: interrupted"), err.decode()

@@ -198,18 +198,21 @@ class BagSequence(Sequence):
         self._t = self._conns["image"][1]
         self._depth_of: list[int] | None = None
         if self.sensor == "rgbd":
-            depth_topic, t_depth, _ = self._conns["depth"] = self._scan(reader, cast(str, self._topic(reader, "depth", True)))
+            depth_topic = cast(str, self._topic(reader, "depth", True))
+            self._conns["depth"] = self._scan(reader, depth_topic)
+            t_depth = self._conns["depth"][1]
             ia, ib = associate(self._t, t_depth, max_diff)
             if len(ia) == 0:
-                raise DatasetError(self.path, no_pairs_text(self._t, t_depth, "image", "depth", f"within {max_diff:g} s",
-                                                            f"topic {depth_topic}") + "; check the timestamps, or run with --sensor mono")
+                raise DatasetError(self.path, no_pairs_text(self._t, t_depth, "colour", "depth",
+                                                            f"within {max_diff:g} s", f"topic {depth_topic}")
+                                   + "; check the timestamps, or run with --sensor mono")
             self._depth_of = [-1] * len(self._t)
             for i, j in zip(ia, ib):
                 self._depth_of[i] = int(j)
             self.association = pairing_report("rgb-depth", self._t, [f"{image} at {t:.6f} s" for t in self._t], t_depth,
                                               ia, ib, max_diff, f"no depth image within {max_diff:g} s",
                                               unpaired_kept=True)
-            check_pairing(self.association, self._t, t_depth, ia, ib, f"{self.path}: {depth_topic}", "image",
+            check_pairing(self.association, self._t, t_depth, ia, ib, f"{self.path}: {depth_topic}", "colour",
                           "depth", logger)
         if self.sensor == "stereo":
             self._conns["right"] = self._scan(reader, cast(str, self._topic(reader, "right", True)))

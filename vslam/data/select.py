@@ -37,6 +37,7 @@ class Subsequence(Sequence):
         self.name = base.name
         self.sensor = base.sensor
         self.calibration = base.calibration
+        self.association = base.association  # of the whole recording, as the reader paired it
 
     def __len__(self) -> int:
         return len(self.indices)
