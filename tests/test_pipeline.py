@@ -180,3 +180,5 @@ def test_skipped_frames_are_the_holes_the_readers_list_and_a_missing_tail():
     stride = Seq(skipped=[(4, "bad")], indices=np.array([0, 2, 4, 6, 8]))
     assert _skipped_frames(stride, [0, 2, 6, 8], 5) == [4]
     assert _skipped_frames(Seq(skipped=[]), [0, 1, 2], 3) == []  # max_frames: nothing missing
+    # a reader that found a lost frame beyond where the run stopped (--max-frames) does not count it
+    assert _skipped_frames(Seq(skipped=[(3, "bad"), (9, "bad")]), [0, 1, 2, 4, 5], 5) == [3]

@@ -48,7 +48,7 @@ def _summary(result: Any, out: Path) -> None:
         print(f"{len(maps)} maps, never merged; posed {posed} of {n} frames; each map aligned on its own:")
         for m in maps:
             e = result.map_evals.get(m["map"])
-            score = "not scored (fewer than 3 poses)" if e is None else e.ate_text() + (
+            score = "not scored (too few poses matched the ground truth)" if e is None else e.ate_text() + (
                 f", {e.n_matched} matched to ground truth" if e.n_matched < m["poses"] else "")
             print(f"  map {m['map']}: {m['poses']} poses, {score}")
         main = next(m for m in maps if m["map"] == result.scored_map)
@@ -410,6 +410,9 @@ def _main(argv: list[str] | None, interrupted: list[bool]) -> int:
             return 130
         return code
     except VslamError as e:
+        if interrupted:
+            print("vslam: interrupted (outputs written so far are kept)", file=sys.stderr)
+            return 130
         print(f"vslam: error: {e}", file=sys.stderr)
         return 2
     except Terminated:
@@ -446,6 +449,8 @@ def _watch_sigint(seen: list[bool]) -> Any:
         seen.append(True)
         raise KeyboardInterrupt
 
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:  # ignored (`cmd &`) or the caller's own
+        return None
     try:
         return signal.signal(signal.SIGINT, on_sigint)
     except ValueError:

@@ -335,7 +335,7 @@ def _skipped_frames(seq: Sequence, received: list[int], n_total: int) -> list[in
     got = set(received)
     last = max(received) if received else -1
     holes = {int(i) for i in expected[expected <= last] if int(i) not in got}
-    wanted = set(expected.tolist())
+    wanted = set(expected[expected <= last].tolist())  # a reader may list lost frames beyond where the run stopped
     holes |= {int(i) for i, _ in getattr(seq, "skipped", []) if int(i) not in got and int(i) in wanted}
     missing = n_total - len(received) - len(holes)
     if missing > 0:  # the reading stopped before the frames it was asked for: the rest did not decode
@@ -573,6 +573,7 @@ class Pipeline:
         if not stats:  # nothing reached the tracker: every frame failed to decode, or the selection kept none
             why = f"; {len(result.skipped)} did not decode" if result.skipped else ""
             result.error = TrackingError(f"no frame of {seq.name} was read{why}: nothing to track")
+            result.eval_skipped = "no frame was read"
         elif not any(tracked):
             # no map was ever made (or only predicted poses): not a result, whatever was written
             result.error = TrackingError(
@@ -583,6 +584,7 @@ class Pipeline:
                 self._evaluate(seq, traj, result, out)
             except VslamError as e:  # the trajectory is written: report the ground truth's problem after it
                 result.error = e
+                result.eval_skipped = str(e).splitlines()[0] if str(e) else type(e).__name__
         log.info("%d frames in %.1f s (%.1f frames/s), %d tracked%s", len(traj), seconds, result.fps, int(np.sum(tracked)),
                  f", {n_dropped} dropped by the live queue" if live else "")
         return result

@@ -93,11 +93,26 @@ def test_config_checks_are_one_line():
         KeypointTrainConfig(size=(100, 120))
 
 
-def test_toy_training_reduces_both_losses_and_resumes(tmp_path):
+def test_toy_training_reduces_both_losses_and_resumes(tmp_path, monkeypatch):
+    """The toy recipe with 100 shapes and 80 joint steps (the toy's 60 and 40 left the shapes loss at 0.77-0.81 of
+    its start by seed against the bound 0.8, and the descriptor loss fell as far, 0.84-1.14, with the descriptor
+    not trained at all). Catches a detector or descriptor loss that does not train (wrong sign, a broken
+    gradient, the descriptor term dropped). Measured over seeds 0-9, torch threads 1 and 2, with and without
+    torch.use_deterministic_algorithms: shapes loss last/first 0.65-0.72 (untrained, lr 1e-9: 1.00), descriptor
+    loss last/first 0.53-0.76 and last 1.59-2.50 (descriptor term off: 0.96-1.22 and 3.35-5.34; chance ln 32 =
+    3.47)."""
+    import dataclasses
+    import math
+
+    import vslam.features.train_keypoints as tk
+
+    toy = tk.toy_config
+    monkeypatch.setattr(tk, "toy_config", lambda cfg: dataclasses.replace(toy(cfg), shapes_steps=100, joint_steps=80))
     m = train(KeypointTrainConfig(out=str(tmp_path / "kp"), toy=True, threads=1))
     loss = m["loss"]
-    assert loss["shapes"]["last"] < 0.8 * loss["shapes"]["first"]
-    assert loss["joint_desc"]["last"] < loss["joint_desc"]["first"]
+    assert loss["shapes"]["last"] < 0.85 * loss["shapes"]["first"], loss["shapes"]
+    assert loss["joint_desc"]["last"] < 0.85 * loss["joint_desc"]["first"], loss["joint_desc"]
+    assert loss["joint_desc"]["last"] < 0.8 * math.log(32), loss["joint_desc"]  # toy desc_points: 32
     assert (tmp_path / "kp" / "model.pt").exists() and (tmp_path / "kp" / "pseudo.npz").exists()
     saved = json.loads((tmp_path / "kp" / "metrics.json").read_text())
     assert saved["parameters"] == m["parameters"]

@@ -174,7 +174,11 @@ class TrajectoryWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._f: TextIO | None = open(self.path, "w")
         self.times_path = kitti_times_path(self.path) if fmt == "kitti" else None
-        self._times: TextIO | None = open(self.times_path, "w") if self.times_path is not None else None
+        try:
+            self._times: TextIO | None = open(self.times_path, "w") if self.times_path is not None else None
+        except BaseException:
+            self._f.close()
+            raise
         if fmt == "tum":
             self._f.write("# timestamp tx ty tz qx qy qz qw\n")
         elif fmt == "euroc":
@@ -190,12 +194,14 @@ class TrajectoryWriter:
             self._times.flush()
 
     def close(self) -> None:
-        if self._f is not None:
-            self._f.close()
-            self._f = None
-        if self._times is not None:
-            self._times.close()
-            self._times = None
+        try:
+            if self._f is not None:
+                f, self._f = self._f, None
+                f.close()
+        finally:
+            if self._times is not None:
+                t, self._times = self._times, None
+                t.close()
 
     def __enter__(self) -> TrajectoryWriter:
         return self

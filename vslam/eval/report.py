@@ -125,7 +125,7 @@ def run_tables(run: dict[str, Any] | None) -> list[Table]:
     if len(run["maps"]) > 1:
         head = ["map", "poses", "tracked", "ATE rmse (m)", "alignment"]
         body = [[str(m["map"]), str(m["poses"]), str(m["tracked"]),
-                 _f(m["ate_rmse"]) if "ate_rmse" in m else "not scored (fewer than 3 matched poses)",
+                 _f(m["ate_rmse"]) if "ate_rmse" in m else "not scored (too few poses matched the ground truth)",
                  (m["align"] + (f", scale {m['scale']:.4f}" if m["align"] == "sim3" else "")) if "align" in m else "–"]
                 for m in run["maps"]]
         tables.append(("Maps (never merged; each aligned on its own)", head, body))
