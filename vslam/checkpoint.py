@@ -5,7 +5,10 @@ weights path from a config or a ``last.pt`` found in an output folder can never 
 any callable; the weights-only unpickler accepts tensors and plain containers and refuses the rest). A file that
 cannot be read that way, or is a checkpoint of another kind, is one ``ConfigError`` line naming the file and
 what was expected; there is no fallback to the full unpickler. ``reading`` gives the same one line for errors
-while the loaded dict is applied (a state dict of another architecture).
+while the loaded dict is applied, and ``load_state`` applies a state dict: weights of another shape than the
+network (a checkpoint for another number of classes, width or descriptor size) are one line naming the file, the
+first parameter that does not fit, its shape in the file and the shape the network expects, not torch's
+"Error(s) in loading state_dict".
 
 Weights files of ConvPoint and VLADNet (``save_weights`` / ``load_weights``) are one ``torch.save`` dict of
 ``config`` (what rebuilds the network), ``state_dict`` and ``meta`` (the training's numbers). Only torch is
@@ -19,7 +22,7 @@ import pickle
 import re
 import warnings
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import torch
 
@@ -87,6 +90,54 @@ def read_checkpoint(path: str | Path, what: str, keys: Sequence[str] = (), map_l
     return ck
 
 
+def _shape(t: Any) -> str:
+    return "(" + ", ".join(str(int(n)) for n in t.shape) + ")" if isinstance(t, torch.Tensor) else f"a {type(t).__name__}"
+
+
+def misfit(model: torch.nn.Module, state: Any) -> str | None:
+    """Why ``state`` cannot be loaded into ``model`` strictly -- the first parameter (in the network's order) whose
+    shape differs, else the first one missing from the file, else the first the network lacks -- or None."""
+    if not isinstance(state, Mapping):
+        return f"its weights are a {type(state).__name__}, not a dict of tensors"
+    want = model.state_dict()
+    for k, w in want.items():
+        if k in state and (not isinstance(state[k], torch.Tensor) or state[k].shape != w.shape):
+            return f"'{k}' is {_shape(state[k])} in the file, the network expects {_shape(w)}"
+    missing = [k for k in want if k not in state]
+    extra = [str(k) for k in state if k not in want]
+
+    def more(names: list[str]) -> str:
+        return f" (and {len(names) - 1} more)" if len(names) > 1 else ""
+
+    if missing:
+        return f"the file has no '{missing[0]}'{more(missing)}" + (f"; it has '{extra[0]}'{more(extra)} instead" if extra else "")
+    if extra:
+        return f"the file has '{extra[0]}'{more(extra)}, which the network lacks"
+    return None
+
+
+def load_state(model: torch.nn.Module, state: Any, path: str | Path, what: str, note: str = "",
+               looks_like: Callable[[Mapping[str, Any]], str] | None = None) -> None:
+    """``model.load_state_dict(state)`` (strict). Weights that do not fit the network are one ``ConfigError``
+    line: "<path>: <what> does not fit the network: '<param>' is (80, 64, 1, 1) in the file, the network expects
+    (2, 64, 1, 1)", followed by ``looks_like(state)`` (what the file's tensors look like they were made for) when
+    given and by ``; <note>``."""
+    from vslam.errors import ConfigError
+
+    why = misfit(model, state)
+    if why is not None:
+        hint = ""
+        if looks_like is not None and isinstance(state, Mapping):
+            try:
+                hint = looks_like(state)
+            except Exception:  # a hint only: a state too odd to describe gets none
+                hint = ""
+        raise ConfigError(f"{Path(path)}: {what} does not fit the network: {why}" + (f" ({hint})" if hint else "")
+                          + (f"; {note}" if note else ""))
+    with reading(path, what, note):
+        model.load_state_dict(state)
+
+
 def save_weights(model: torch.nn.Module, config: dict, path: str | Path, meta: dict | None = None) -> Path:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
@@ -94,9 +145,10 @@ def save_weights(model: torch.nn.Module, config: dict, path: str | Path, meta: d
     return p
 
 
-def load_weights(path: str | Path, name: str, command: str, build: Callable[[dict], torch.nn.Module]) -> torch.nn.Module:
+def load_weights(path: str | Path, name: str, command: str, build: Callable[[dict], torch.nn.Module],
+                 looks_like: Callable[[Mapping[str, Any]], str] | None = None) -> torch.nn.Module:
     """The network ``build(config)`` with the file's weights, eval mode, CPU. ``name`` and ``command`` (how to
-    train it) go into the error."""
+    train it) go into the error; ``looks_like``: see ``load_state``."""
     from vslam.errors import ConfigError
 
     p = Path(path)
@@ -106,5 +158,5 @@ def load_weights(path: str | Path, name: str, command: str, build: Callable[[dic
     ck = read_checkpoint(p, what, ("config", "state_dict"))
     with reading(p, what):
         model = build(ck["config"])
-        model.load_state_dict(ck["state_dict"])
+    load_state(model, ck["state_dict"], p, what, looks_like=looks_like)
     return model.eval()

@@ -10,6 +10,9 @@ or an error.
   pairs are made, but of images taken at different moments.
 - A partner image that no frame can use (8-bit depth, depth of another size than the images) is an error
   when the sequence opens, naming the file and what was expected, not a skipped frame each time.
+- Depth in a wrong unit (a depth scale off by 1000, PNGs written in another unit than the scale says) is a
+  warning when the sequence opens: the first depth image's median, in metres after the depth scale, outside what
+  an RGB-D camera sees, or too few valid pixels to tell.
 """
 
 from __future__ import annotations
@@ -29,6 +32,21 @@ from vslam.errors import DatasetError
 # EuRoC V1_01 subset none of its left images: more than 5 % is a list that was cut, thinned or shifted.
 DROP_WARN_FRACTION = 0.05
 N_NAMED = 3  # files a warning names before "and N more"
+
+# Plausible median depth (metres) of the valid pixels of one RGB-D frame. The sensors read from 0.25-0.5 m (Kinect
+# v1 / v2 0.5 m, Azure Kinect 0.25 m, RealSense D4xx ~0.2-0.3 m) to 5-10 m (Azure Kinect 5.5 m, Kinect and D4xx
+# about 8-10 m, where few pixels are still valid), and a scene's median sits well inside its sensor's range: TUM
+# teddy's frames have medians of 0.9-4.1 m (2.1 m in its first). A depth scale off by 1000 puts the median at
+# millimetres or kilometres, PNGs in tenths of the declared unit at a tenth (teddy: 0.21 m), TUM's 5000 units per
+# metre read as millimetres (a ROS bag's default) at 5 times (teddy: 10.7 m): all outside. Not caught: a factor
+# that keeps the median in range (millimetres read at TUM's 5000 units per metre: teddy 0.43 m).
+DEPTH_MEDIAN_RANGE_M = (0.25, 10.0)
+# Fewer valid (non-zero, finite) pixels than this in the first depth image: too few to trust, or not depth of
+# this scene at all. Kinect and RealSense frames hold 60-90 % (teddy's first: 74 %); sunlight on a structured-
+# light camera or a lens cap leaves a few percent.
+DEPTH_MIN_VALID_FRACTION = 0.10
+
+logger = logging.getLogger(__name__)
 
 
 def _names(items: Seq[tuple[str, str]]) -> str:
@@ -146,13 +164,19 @@ def check(
 
 
 def check_depth_image(path: Path, raw: np.ndarray | None, size: tuple[int, int], dtypes: Seq[type],
-                      expected: str, images: str) -> None:
+                      expected: str, images: str, depth_scale: float | None = None,
+                      scale_from: str = "depth_scale") -> float | None:
     """DatasetError(path) when the decoded depth image ``raw`` cannot be depth for images of ``size``
     (width, height): a dtype not in ``dtypes`` (8-bit: a converted or visualised copy) or another size.
     ``expected`` describes the depth format ("16-bit PNG, 5000 units per metre"); None (not decoded) passes:
-    that frame is skipped later, with its warning."""
+    that frame is skipped later, with its warning.
+
+    Returns the median of its valid pixels in metres (integer depth divided by ``depth_scale``, raw units per
+    metre; float depth is metres), None when none is valid or ``raw`` is None. A median outside
+    ``DEPTH_MEDIAN_RANGE_M`` or fewer than ``DEPTH_MIN_VALID_FRACTION`` valid pixels is a warning naming the
+    file, the median and the scale, and ``scale_from`` (where the scale came from) as what to check."""
     if raw is None:
-        return
+        return None
     hint = "; run with --sensor mono to go without depth"
     if raw.dtype not in [np.dtype(d) for d in dtypes] or raw.ndim != 2:
         what = f"{raw.dtype}" + (f", {raw.shape[2]} channels" if raw.ndim == 3 else "")
@@ -163,4 +187,34 @@ def check_depth_image(path: Path, raw: np.ndarray | None, size: tuple[int, int],
     if (w, h) != tuple(size):
         raise DatasetError(path, f"depth image is {w}x{h}, the {images} are {size[0]}x{size[1]}: depth must be "
                                  f"registered to the images, at their size{hint}")
+    return depth_plausibility(path, raw, depth_scale, scale_from)
+
+
+def _metres(x: float) -> str:
+    return f"{x:.0f}" if x >= 100 else f"{x:.3g}"
+
+
+def depth_plausibility(path: Path, raw: np.ndarray, depth_scale: float | None, scale_from: str) -> float | None:
+    """The median valid depth (metres) of ``raw``; warns when it or the share of valid pixels is implausible
+    for an RGB-D camera (see ``check_depth_image``)."""
+    is_float = raw.dtype.kind == "f"
+    scale = 1.0 if is_float or depth_scale is None else float(depth_scale)
+    scale_text = "1 (metres)" if is_float else f"1/{scale:g}"
+    v = raw.astype(np.float64)
+    valid = v[np.isfinite(v) & (v > 0)] / scale
+    frac = valid.size / max(v.size, 1)
+    median = float(np.median(valid)) if valid.size else None
+    lo, hi = DEPTH_MEDIAN_RANGE_M
+    check = f"is the depth unit right ({'float depth must be metres' if is_float else scale_from})?"
+    if median is None:
+        logger.warning("%s: no valid depth pixel in the first depth image (all 0 or not finite): is it depth of "
+                       "these images? frames without depth lose their depth features", path)
+    elif frac < DEPTH_MIN_VALID_FRACTION:
+        logger.warning("%s: only %.1f %% of the first depth image's pixels are valid (expected at least %.0f %% for "
+                       "an RGB-D camera; median %s m after depth scale %s): is it depth of these images, and %s",
+                       path, 100.0 * frac, 100.0 * DEPTH_MIN_VALID_FRACTION, _metres(median), scale_text, check)
+    elif not lo <= median <= hi:
+        logger.warning("%s: median depth %s m after depth scale %s (expected %g-%g m for an RGB-D camera): %s",
+                       path, _metres(median), scale_text, lo, hi, check)
+    return median
 

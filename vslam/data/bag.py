@@ -223,6 +223,8 @@ class BagSequence(Sequence):
                                            unpaired_kept=False)
         self._imu = self._read_imu(reader)
         cf = self._camera_file(camera)
+        scale_from = f"depth_scale in {cf.path}" if cf is not None else \
+            "16UC1 read as millimetres (REP 118); depth_scale in a camera file otherwise"
         try:
             first = self._decode("image", 0, reader)
         except ValueError as e:  # "<bag>:<topic>: image encoding ... not supported" / "... does not decode"
@@ -239,6 +241,7 @@ class BagSequence(Sequence):
                 raise DatasetError(cf.path, "missing key 'baseline' (metres) for --sensor stereo")
             if self.sensor == "rgbd" and cf.depth_scale is None:
                 cf = CameraFile(**{**cf.__dict__, "depth_scale": ROS_DEPTH_SCALE})
+                scale_from = f"16UC1 read as millimetres (REP 118); depth_scale in {cf.path} otherwise"
             self.calibration = cf.calibration(first.shape[1], first.shape[0], self.sensor, image=self.path)
         if self._depth_of is not None:  # depth no frame can use is refused here, not skipped frame by frame
             j = next(j for j in self._depth_of if j >= 0)
@@ -251,9 +254,10 @@ class BagSequence(Sequence):
                     topic = self._conns["depth"][0]
                     raise DatasetError(self.path, f"topic {topic}, first depth image: "
                                                   f"{str(e).removeprefix(f'{self.path}:{topic}: ')}") from None
-            check_depth_image(Path(f"{self.path}:{self._conns['depth'][0]}"), raw, (first.shape[1], first.shape[0]),
-                              (np.uint16, np.float32), "16UC1 (depth_scale units per metre, default millimetres) or "
-                              "32FC1 (metres) depth", "images")
+            self.depth_median_m = check_depth_image(
+                Path(f"{self.path}:{self._conns['depth'][0]}"), raw, (first.shape[1], first.shape[0]),
+                (np.uint16, np.float32), "16UC1 (depth_scale units per metre, default millimetres) or 32FC1 (metres) "
+                "depth", "images", self.calibration.depth_scale, scale_from)
 
     def _camera_file(self, camera: str | Path | None) -> CameraFile | None:
         if camera:

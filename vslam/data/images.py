@@ -161,9 +161,10 @@ class ImageFolderSequence(Sequence):
         self._first = k
         if self._depth is not None:  # depth no frame can use is refused here, not skipped frame by frame
             d = next(f for f in self._depth if f is not None)
-            check_depth_image(d, cv2.imread(str(d), cv2.IMREAD_UNCHANGED), (first.shape[1], first.shape[0]),
-                              (np.uint16,), f"16-bit single-channel depth (uint16, {cf.depth_scale:g} units per "
-                              "metre: depth_scale in the camera file)", "colour images")
+            self.depth_median_m = check_depth_image(
+                d, cv2.imread(str(d), cv2.IMREAD_UNCHANGED), (first.shape[1], first.shape[0]), (np.uint16,),
+                f"16-bit single-channel depth (uint16, {cf.depth_scale:g} units per metre: depth_scale in the camera "
+                "file)", "colour images", self.calibration.depth_scale, f"depth_scale in {cf.path}")
 
     def _check_camera_file(self) -> None:
         cf = self.camera_file

@@ -195,9 +195,12 @@ class TumRgbdSequence(Sequence):
         if self._depth is not None:  # depth no frame can use is refused here, not skipped frame by frame
             first = next(f for f in self._depth if f is not None)
             cam = self.calibration.cam0
-            check_depth_image(first, cv2.imread(str(first), cv2.IMREAD_UNCHANGED), (cam.width, cam.height),
-                              (np.uint16,), f"16-bit single-channel depth (uint16, {self.calibration.depth_scale:g} "
-                              "units per metre)", "rgb images")
+            scale_from = f"depth_scale in {root / 'calibration.yaml'}" if (root / "calibration.yaml").is_file() \
+                else f"TUM's {TUM_DEPTH_SCALE:g} units per metre; depth_scale in calibration.yaml otherwise"
+            self.depth_median_m = check_depth_image(
+                first, cv2.imread(str(first), cv2.IMREAD_UNCHANGED), (cam.width, cam.height), (np.uint16,),
+                f"16-bit single-channel depth (uint16, {self.calibration.depth_scale:g} units per metre)", "rgb images",
+                self.calibration.depth_scale, scale_from)
 
         gt_path = root / "groundtruth.txt"
         # A ground-truth problem is raised by groundtruth(), after a run has written its trajectory: it must

@@ -228,6 +228,9 @@ class Sequence(abc.ABC):
     # how a second stream (depth, right images) was paired with the frames when the sequence opened; None for
     # a reader that pairs nothing (or a sensor that needs no second stream)
     association: Association | None = None
+    # median valid depth (metres, after the reader's depth scale) of the first paired depth image, measured when
+    # an RGB-D sequence opens (vslam.data.association.check_depth_image); None when not measured
+    depth_median_m: float | None = None
 
     @abc.abstractmethod
     def __len__(self) -> int:

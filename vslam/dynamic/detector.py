@@ -9,13 +9,14 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any, Mapping
 
 import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from vslam.dynamic.model import DetectorConfig, YoloDetector, decode, fuse_for_inference, mask_outputs
+from vslam.dynamic.model import SCALES, DetectorConfig, YoloDetector, decode, fuse_for_inference, mask_outputs
 from vslam.errors import ConfigError
 from vslam.dynamic.nms import batched_nms
 from vslam.resources import shipped_model
@@ -145,17 +146,34 @@ def default_weights() -> Path:
 
 def load_model(path: str | Path, field: str = "slam.dynamic.weights") -> tuple[YoloDetector, dict]:
     """``field``: the config field that named ``path``, for the error when it is missing."""
-    from vslam.checkpoint import read_checkpoint, reading
+    from vslam.checkpoint import load_state, read_checkpoint, reading
 
     if not Path(path).is_file():
         raise ConfigError(f"{path}: detector weights not found ({field})")
     what = "detector checkpoint"
     ckpt = read_checkpoint(path, what, ("model", "config", "names"))  # weights only: a config path never runs code
-    with reading(path, what):  # another architecture's state dict, a config of other fields
+    with reading(path, what):  # a config of other fields, weights that are not tensors
         model = YoloDetector(DetectorConfig(**ckpt["config"]))
-        model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in ckpt["model"].items()})
+        state = {k: v.float() if v.is_floating_point() else v for k, v in ckpt["model"].items()}
         ckpt["names"] = [str(n) for n in ckpt["names"]]
+    # tensors of another shape than the network the file's config builds: one line naming the first of them
+    load_state(model, state, path, what, looks_like=lambda st: _looks_like(st, model.cfg, len(ckpt["names"])))
     return model, ckpt
+
+
+def _looks_like(state: Mapping[str, Any], cfg: DetectorConfig, n_names: int) -> str:
+    """What a detector state dict's tensors were made for (classes, width, mask prototypes) against its config."""
+    def out(key: str) -> int | None:
+        t = state.get(key)
+        return int(t.shape[0]) if isinstance(t, torch.Tensor) and t.ndim >= 1 else None
+
+    nc, c1, nm = out("head.cls.0.2.bias"), out("stem.0.conv.weight"), out("head.coef.0.2.bias")
+    if nc is None or c1 is None:
+        return ""
+    width = cfg.width if cfg.width is not None else SCALES[cfg.scale][1] if cfg.scale in SCALES else None
+    said = f"{cfg.num_classes} classes" + (f", width {width:g}" if width is not None else "") + f", {cfg.masks} masks"
+    return (f"its tensors are a detector of {nc} classes, width ~{c1 / 64:g} ({c1} stem channels), {nm or 0} masks; "
+            f"its config says {said}, and it names {n_names} classes")
 
 
 def load_detector(path: str | Path, img_size: int = 640, conf: float = 0.25, device: torch.device | str = "cpu",

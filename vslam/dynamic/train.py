@@ -352,14 +352,14 @@ def _recipe(d: dict) -> dict:
 def _resume(last: Path, cfg: TrainConfig, model: YoloDetector, opt: torch.optim.Optimizer, dev: torch.device) -> int:
     """Model and optimiser state from ``last`` (read weights-only: a file planted in the output folder never runs
     code) -> the iteration to continue from."""
-    from vslam.checkpoint import read_checkpoint, reading
+    from vslam.checkpoint import load_state, read_checkpoint, reading
 
     what, note = "detector training checkpoint", "resume refused"
     ck = read_checkpoint(last, what, ("model", "optimizer", "iteration", "train"), map_location=dev, note=note)
     with reading(last, what, note):
         if _recipe(dict(ck["train"])) != _recipe(asdict(cfg)):
             raise ConfigError(f"{last}: was trained with a different config; resume needs the same one")
-        model.load_state_dict(ck["model"])
+        load_state(model, ck["model"], last, what, note)
         opt.load_state_dict(ck["optimizer"])
         return int(ck["iteration"])
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Mapping
 
 import cv2
 import numpy as np
@@ -268,7 +269,16 @@ def _read_weights(path: str | Path) -> ConvPointNet:
     from vslam.checkpoint import load_weights
 
     return load_weights(path, "ConvPoint", "vslam train keypoints", lambda c: ConvPointNet(
-        ConvPointConfig(tuple(int(v) for v in c["channels"]), int(c["desc_dim"]))))
+        ConvPointConfig(tuple(int(v) for v in c["channels"]), int(c["desc_dim"]))), _looks_like)
+
+
+def _looks_like(state: Mapping[str, Any]) -> str:
+    """What a ConvPoint state dict's tensors were made for: its encoder channels and descriptor size."""
+    enc = [int(v.shape[0]) for k, v in state.items() if k.startswith("encoder.") and getattr(v, "ndim", 0) == 4]
+    desc = [int(v.shape[0]) for k, v in state.items() if k.startswith("desc.") and getattr(v, "ndim", 0) == 4]
+    if len(enc) != 7 or len(desc) != 2:
+        return ""
+    return f"its tensors are a ConvPoint of channels {enc[::2]}, desc_dim {desc[-1]}"
 
 
 def _int8_from_file(net: ConvPointNet, path: str | Path) -> ConvPointInt8:

@@ -330,14 +330,14 @@ RESUME_WHAT = "keypoint training checkpoint"
 def _resume(last: Path, model, dev) -> dict:
     """``last``'s dict with its model state applied (read weights-only: a file planted in the output folder never
     runs code). Optimiser, schedule and RNG states are applied by the stage they belong to."""
-    from vslam.checkpoint import read_checkpoint, reading
+    from vslam.checkpoint import load_state, read_checkpoint, reading
 
     keys = ("model", "opt", "sched", "rng", "torch_rng", "stage", "step", "history")
     ck = read_checkpoint(last, RESUME_WHAT, keys, map_location=dev, note="resume refused")
     with reading(last, RESUME_WHAT, "resume refused"):
         if ck["stage"] not in ("shapes", "adapt", "joint"):
             raise ValueError(f"unknown stage {ck['stage']!r}")
-        model.load_state_dict(ck["model"])
+        load_state(model, ck["model"], last, RESUME_WHAT, "resume refused")
         ck["step"] = int(ck["step"])
         ck["history"] = {str(k): [float(x) for x in v] for k, v in dict(ck["history"]).items()}
     return ck

@@ -234,7 +234,7 @@ def _resume(last: Path, model, opt, sched, rng: np.random.Generator, dev) -> tup
     folder never runs code) -> (step, loss history)."""
     import torch
 
-    from vslam.checkpoint import read_checkpoint, reading
+    from vslam.checkpoint import load_state, read_checkpoint, reading
 
     what, note = "place training checkpoint", "resume refused"
     keys = ("model", "opt", "sched", "step", "history", "rng", "torch_rng")
@@ -242,7 +242,7 @@ def _resume(last: Path, model, opt, sched, rng: np.random.Generator, dev) -> tup
     with reading(last, what, note):
         if "stage" in ck:  # a keypoint trainer's last.pt holds the same keys and one more
             raise ValueError("a keypoint training checkpoint")
-        model.load_state_dict(ck["model"])
+        load_state(model, ck["model"], last, what, note)
         opt.load_state_dict(ck["opt"])
         sched.load_state_dict(ck["sched"])
         rng.bit_generator.state = ck["rng"]
