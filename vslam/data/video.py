@@ -96,8 +96,9 @@ class VideoSequence(Sequence):
                 break
             t = cap.get(cv2.CAP_PROP_POS_MSEC)
             n_lost = failed
-            if failed and container_fps > 0:  # the gap in the times says how many frames the failed reads took
-                gap = (t - t_ms[-1]) if t_ms else t + 1e3 / container_fps
+            if failed and container_fps > 0 and t_ms:  # the gap in the times says how many frames the failed reads
+                # took; before the first decoded frame the container's start time is unknown (not always 0)
+                gap = t - t_ms[-1]
                 n_lost = max(failed, int(round(gap * container_fps / 1e3)) - 1)
             nxt = index[-1] + 1 if index else 0
             lost.extend(range(nxt, nxt + n_lost))
