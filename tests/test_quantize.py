@@ -48,10 +48,20 @@ def test_stored_ranges_rebuild_the_calibrated_network_exactly(small_net):
     with torch.inference_mode():
         a, b, f = q(x), q(x), core(x)
     assert all(torch.equal(u, v) for u, v in zip(a, b))  # deterministic
-    # int8 tracks the float network: logits within a few quantisation steps, same arg-max cell class mostly
+    # int8 tracks the float network: logits within a few quantisation steps (catches wrong or misapplied ranges, a
+    # layer left out of the calibration, a missing requantisation). Over init seeds 0-29 (0-5 also with torch threads
+    # 2 and with torch.use_deterministic_algorithms): max error 0.009-0.013 of the largest logit (bound 0.1),
+    # RMS error 0.009-0.012 of the logits' spread (bound 0.05). The arg-max cell class is compared where the float
+    # network's top two classes are 0.05 of the largest logit apart (81 % of the cells here; all agree): where they
+    # are closer this random network's arg-max is a near tie, and its agreement fell to 0.46 for some seeds.
+    scale = f[0].abs().max().item()
     err = (a[0] - f[0]).abs().max().item()
-    assert err < 0.1 * f[0].abs().max().item()
-    assert (a[0].argmax(1) == f[0].argmax(1)).float().mean().item() > 0.9
+    assert err < 0.1 * scale, err / scale
+    rms = (a[0] - f[0]).pow(2).mean().sqrt().item()
+    assert rms < 0.05 * f[0].std().item(), rms / f[0].std().item()
+    top2 = f[0].topk(2, dim=1).values
+    clear = top2[:, 0] - top2[:, 1] > 0.05 * scale
+    assert clear.sum() > 0 and (a[0].argmax(1) == f[0].argmax(1))[clear].all()
     # the calibration changed nothing in the float network it was given
     assert all(not hasattr(m, "activation_post_process") for m in small_net.modules())
 
@@ -102,7 +112,10 @@ def test_shipped_int8_convpoint_matches_the_float_one():
     assert isinstance(i8.model, ConvPointInt8) and isinstance(f32.model, ConvPointNet)
     im, _ = render_shapes(np.random.default_rng(11), 240, 320)
     a, b = f32.detect(im, cam), i8.detect(im, cam)
-    assert abs(len(a) - len(b)) <= 0.1 * len(a)
+    # measured on this image: 94 vs 98 keypoints (0.04), 0.94 found again within a pixel, median cosine 0.9987;
+    # on shapes images 0-5 (threads 1, 2, deterministic algorithms): 0.03-0.13, 0.87-0.98, 0.998-0.999. A wrongly
+    # scaled int8 heatmap changes the count by far more than 0.2 (corners near the detection threshold move a few)
+    assert abs(len(a) - len(b)) <= 0.2 * len(a), (len(a), len(b))
     # most keypoints are found again within a pixel, with nearly the same descriptor
     d = np.linalg.norm(a.raw[:, None] - b.raw[None], axis=2)
     j = d.argmin(1)

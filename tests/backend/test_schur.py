@@ -38,7 +38,10 @@ def test_numpy_solver_matches_gtsam(stereo_frac, disparity_sigma):
         dt, dr = S.pose_error(n.poses[k], g.poses[k])
         assert dt < 1e-4 and dr < 1e-3  # metres, degrees: the two LM paths differ only in rounding and retraction
     dp = np.array([np.linalg.norm(n.points[j] - g.points[j]) for j in g.points])
-    assert np.median(dp) < 1e-5 and dp.max() < 1e-2  # the worst: a mono point of little parallax
+    # the worst: a mono point of little parallax. The median is what rounding leaves after the same 6 LM steps:
+    # measured 8.2e-6 m here (mono), 2.5e-6..1.07e-5 m over window seeds 0-7 (0.1-1.5e-6 with stereo or depth);
+    # a different cost or Jacobian in one solver leaves the ~1 cm start perturbation, orders of magnitude more
+    assert np.median(dp) < 5e-5 and dp.max() < 1e-2, (np.median(dp), dp.max())
     assert np.mean(n.inliers == g.inliers) > 0.998
     assert n.initial_error == pytest.approx(g.initial_error, rel=1e-9)
     assert n.final_error == pytest.approx(g.final_error, rel=1e-3)

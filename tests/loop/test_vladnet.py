@@ -76,18 +76,23 @@ def test_recall_at_counts_only_queries_with_a_positive() -> None:
 
 
 def test_toy_training_reduces_the_loss_and_improves_recall(tmp_path) -> None:
-    """The CPU toy recipe (2 synthetic routes, 80x60 input, 300 steps) against its own k-means start, on a
-    held-out route (seed 0, 2 laps)."""
+    """The CPU toy recipe (2 synthetic routes, 80x60 input, 300 steps) against its own k-means start, scored on lap 2
+    vs lap 1 of training route 11 (val_seed=11): what the toy can learn. On the held-out route (seed 0) the toy's
+    R@1+5+10 gain ranged -0.27..+0.93 by seed and thread count (noise at this scale; held-out recall is
+    test_shipped_weights_recall_on_held_out_places's). Catches a loss that does not train (wrong sign, a broken
+    gradient), positives and negatives swapped, and descriptors that ignore the learned weights. Measured over
+    seeds 0-5, torch threads 1 and 2, with and without torch.use_deterministic_algorithms: loss last/first
+    0.12-0.31 (untrained, lr 1e-9: 0.95-0.97), R@1+5+10 gain +1.13..+1.47 (untrained: -0.83..-0.10)."""
     from vslam.loop.train_place import PlaceTrainConfig, train
 
-    m = train(PlaceTrainConfig(out=str(tmp_path / "toy"), toy=True, threads=1))
+    m = train(PlaceTrainConfig(out=str(tmp_path / "toy"), toy=True, threads=1, val_seed=11))
     assert m["steps"] == 300
-    assert m["loss_last"] < 0.5 * m["loss_first"]  # measured 0.103 -> 0.016
+    assert m["loss_last"] < 0.5 * m["loss_first"], (m["loss_first"], m["loss_last"])
     assert (tmp_path / "toy" / "model.pt").exists() and (tmp_path / "toy" / "last.pt").exists()
     before, after = m["eval_init"]["synthetic"]["vladnet"], m["eval"]["synthetic"]["vladnet"]
     assert before["queries"] == after["queries"] >= 20
-    # measured R@1/5/10 0.17/0.57/0.70 -> 0.27/0.67/0.90
-    assert sum(after[f"r@{k}"] for k in (1, 5, 10)) > sum(before[f"r@{k}"] for k in (1, 5, 10)) + 0.15
+    gain = sum(after[f"r@{k}"] for k in (1, 5, 10)) - sum(before[f"r@{k}"] for k in (1, 5, 10))
+    assert gain > 0.6, (before, after)  # seed 0: R@1/5/10 0.10/0.67/0.87 -> 0.97/1.00/1.00
 
 
 def test_shipped_weights_recall_on_held_out_places() -> None:

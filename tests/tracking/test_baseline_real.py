@@ -35,6 +35,8 @@ def test_euroc_static_window_stereo(euroc_v101, tmp_path):
 
 def test_kitti_mono_runs(kitti_root, tmp_path):
     res = _run(open_sequence(kitti_root / "sequences" / "07", sensor="mono"), "mono", tmp_path, 40, align="sim3")
-    assert res.tracked[1:].mean() > 0.9
+    # measured 36 of 39 frames (0.92; the same with 1 CPU and single-threaded BLAS): > 0.9 left one frame to an
+    # OpenCV RANSAC that differs by version; losing 8 or more of the 39 frames fails
+    assert res.tracked[1:].mean() > 0.8, res.tracked
     assert res.eval.alignment.method == "sim3"
     assert res.eval.ate.translation.rmse < 0.69  # bound 1.5x; measured 0.46 m over 32 m (unit-step mono baseline)

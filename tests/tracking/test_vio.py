@@ -53,8 +53,11 @@ def test_vio_stays_close_to_vision_only_before_the_blackout(blackout_runs):
     before = np.arange(BLACK[0])
     ate_v = _ate(traj_v.subset(before), seq).ate.translation.rmse
     ate_i = _ate(traj_i.subset(before), seq).ate.translation.rmse
-    assert ate_i < 1.6 * ate_v
-    assert ate_i < 0.0065
+    # measured here VIO 0.0053 m vs vision-only 0.0039 m (1.38x; scene seeds 1000 / 2000: 0.90x / 0.90x; the same to
+    # 1e-15 with 1 CPU and single-threaded BLAS). Catches an IMU that pulls the visual estimate off (wrong extrinsics,
+    # gravity or noise weights): bounds 2x vision-only and 1.5x the measured VIO value
+    assert ate_i < 2.0 * ate_v, (ate_i, ate_v)
+    assert ate_i < 0.008, ate_i
 
 
 def test_blackout_is_bridged_by_the_imu(blackout_runs):
@@ -63,9 +66,11 @@ def test_blackout_is_bridged_by_the_imu(blackout_runs):
     assert not tr_i[b0:b1].any() and not tr_v[b0:b1].any()  # black frames are predicted, never "tracked"
     assert tr_i[b1:].all()  # tracking recovers right after, around the IMU-predicted pose
     err_v, err_i = res_v.arrays.ate_t[b0:b1].max(), res_i.arrays.ate_t[b0:b1].max()
-    # measured: the constant-velocity prediction drifts 0.51 m by the end of the blackout, the IMU's 0.039 m
-    assert err_v > 0.2
-    assert err_i < 0.06
+    # measured: the constant-velocity prediction drifts 0.26 m by the end of the blackout, the IMU's 0.037 m (7x; scene
+    # seeds 1000 / 2000: vision-only 0.40 / 0.12 m, so an absolute bound on it, 0.2 m, tested the scene). Catches an
+    # IMU prediction that does not bridge the gap: it must beat the constant-velocity one 3x and stay under 0.06 m
+    assert err_v > 3 * err_i, (err_v, err_i)
+    assert err_i < 0.06, err_i
     assert res_i.ate.translation.rmse < 0.035  # measured 0.0236 m over all 110 frames (vision-only 0.229 m)
 
 
