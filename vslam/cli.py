@@ -388,7 +388,9 @@ def main(argv: list[str] | None = None) -> int:
         return _main(argv, interrupted)
     finally:
         if sigint is not None:
-            signal.signal(signal.SIGINT, sigint)
+            # after a Ctrl-C the process is ending with 130: a second one still pending in the interpreter (a
+            # signal taken while C code held the thread is run later) must not kill it with a traceback
+            signal.signal(signal.SIGINT, signal.SIG_IGN if interrupted else sigint)
 
 
 def _main(argv: list[str] | None, interrupted: list[bool]) -> int:

@@ -351,9 +351,14 @@ def test_imu_spikes_through_the_cli_are_a_warning_not_a_wrong_trajectory(cli, tm
 def test_ctrl_c_in_the_first_seconds_is_one_line_and_130(tmp_path, delay):
     """Ctrl-C while the command loads its modules (torch, pycolmap, gtsam: ~1-3 s) printed a 36-line KeyboardInterrupt
     traceback or ``internal error: ImportError`` (an import interrupted half way); it must end like any interrupt.
-    The delays start after ``import vslam.cli`` (about 0.1 s), inside the subcommands' imports and the run's start."""
+    The delays start after ``import vslam.cli`` (about 0.1 s), inside the subcommands' imports and the run's start.
+    Through the ``vslam`` command users run: under ``python -m vslam.cli`` CPython itself may end a process whose
+    import was interrupted with SIGINT after ``main`` returned 130 (seen on a loaded machine only)."""
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "vslam.cli", "run", "--max-frames", "200", "-o", str(out)]
+    vslam = Path(sys.executable).with_name("vslam")
+    if not vslam.is_file():
+        pytest.skip(f"no vslam command beside {sys.executable} (not a pip-installed environment)")
+    cmd = [str(vslam), "run", "--max-frames", "200", "-o", str(out)]
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
     time.sleep(delay)
     os.killpg(p.pid, signal.SIGINT)
