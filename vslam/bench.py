@@ -34,7 +34,8 @@ from typing import Any, Literal
 import numpy as np
 
 from vslam.bench_checks import METRICS, MISS, OP_TEXT, PASS, Check, Outcome, check_report, evaluate_row, fmt_value
-from vslam.bench_checks import git_commit, measured_on, readme_table, replace_between_markers, target_text, verdict
+from vslam.bench_checks import git_commit, measured_on, readme_table, replace_between_markers, target_text, tol_text
+from vslam.bench_checks import verdict
 from vslam.childproc import peak_rss_mb
 from vslam.config import deep_merge, from_dict, load_yaml, parse_overrides
 from vslam.errors import ConfigError
@@ -700,8 +701,7 @@ def _measured_cell(o: Outcome) -> str:
     """``ATE 0.0041 m (≤ 0.0045 m) ✓`` for one check."""
     label = METRICS[o.check.metric].label if o.check.metric in METRICS else o.check.metric
     got = fmt_value(o.check.metric, o.measured) if o.measured is not None else (o.why or "–")
-    tol = f" ±{100 * o.check.tol:g} %" if o.check.op == "~=" else ""
-    bound = "" if o.bound is None else f" ({OP_TEXT[o.check.op]} {fmt_value(o.check.metric, o.bound)}{tol})"
+    bound = "" if o.bound is None else f" ({OP_TEXT[o.check.op]} {fmt_value(o.check.metric, o.bound)}{tol_text(o.check)})"
     mark = {"pass": PASS, "fixed": PASS, "miss": MISS, "known": f"{MISS} open: {o.check.open}"}.get(o.status, "–")
     return f"{label} {got}{bound} {mark}"
 

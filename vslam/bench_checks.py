@@ -218,8 +218,13 @@ def check_text(c: Check, row: str = "") -> str:
         ratio = "" if c.ratio in (None, 1.0) else f"{_num(c.ratio)}x "
         rhs = ratio + " ".join(ref) + (f" + {_num(c.plus)}{' ' + unit if unit else ''}" if c.plus else "")
     if c.op == "~=":
-        rhs += f" (±{_num(100 * c.tol)} %)"
+        rhs += f" ({tol_text(c).strip()})"
     return f"{label} {OP_TEXT[c.op]} {rhs}"
+
+
+def tol_text(c: Check) -> str:
+    """`` ±10 %`` for a ``~=`` check, "" for the others: what a bound is shown with."""
+    return f" ±{_num(100 * c.tol)} %" if c.op == "~=" else ""
 
 
 def _num(v: float) -> str:
@@ -246,7 +251,7 @@ class Outcome:
         if got == bound and self.measured is not None and self.bound is not None:  # a miss hidden by rounding
             got, bound = format(self.measured, ".6g"), format(self.bound, ".6g")
         text = check_text(c, self.row)
-        bound += f" ±{100 * c.tol:g} %" if c.op == "~=" and self.bound is not None else ""
+        bound += tol_text(c) if self.bound is not None else ""
         return f"{self.row}: {c.metric} {got} vs target {OP_TEXT[c.op]} {bound} ({text})" + (f"; open: {c.open}" if c.open else "")
 
 

@@ -373,14 +373,6 @@ def _os_error_line(e: OSError) -> str:
     return f"{where}{why}"
 
 
-def _parse(argv: list[str] | None) -> argparse.Namespace | int:
-    """The arguments, or 130 for a Ctrl-C while the subcommands' modules load."""
-    try:
-        return build_parser().parse_args(argv)
-    except KeyboardInterrupt:
-        return 130
-
-
 def main(argv: list[str] | None = None) -> int:
     interrupted: list[bool] = []  # Ctrl-C seen, even where a library turned it into another exception or ate it
     sigint = _watch_sigint(interrupted)
@@ -393,9 +385,26 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGINT, signal.SIG_IGN if interrupted else sigint)
 
 
+def _call(args: argparse.Namespace, interrupted: list[bool]) -> int:
+    """``args.fn(args)``; a Ctrl-C that a library turned into its own error (an import interrupted half way: an
+    ImportError) or caught is raised again as the KeyboardInterrupt it was."""
+    try:
+        code = args.fn(args)
+    except Exception:
+        if interrupted:
+            raise KeyboardInterrupt from None
+        raise
+    if interrupted:
+        raise KeyboardInterrupt
+    return code
+
+
 def _main(argv: list[str] | None, interrupted: list[bool]) -> int:
-    args = _parse(argv)
-    if isinstance(args, int) or interrupted:  # a Ctrl-C while the modules load, whatever caught it
+    try:
+        args = build_parser().parse_args(argv)
+    except KeyboardInterrupt:
+        args = None
+    if args is None or interrupted:  # a Ctrl-C while the subcommands' modules load, whatever caught it
         print("vslam: interrupted", file=sys.stderr)
         return 130
     level = logging.WARNING - 10 * min(args.verbose, 2)
@@ -406,15 +415,8 @@ def _main(argv: list[str] | None, interrupted: list[bool]) -> int:
     except ValueError:  # not the main thread (main() called from a thread): leave SIGTERM as it is
         previous = None
     try:
-        code = args.fn(args)
-        if interrupted:  # a Ctrl-C some library caught: the run did not end as it would have
-            print("vslam: interrupted (outputs written so far are kept)", file=sys.stderr)
-            return 130
-        return code
+        return _call(args, interrupted)
     except VslamError as e:
-        if interrupted:
-            print("vslam: interrupted (outputs written so far are kept)", file=sys.stderr)
-            return 130
         print(f"vslam: error: {e}", file=sys.stderr)
         return 2
     except Terminated:
@@ -424,15 +426,9 @@ def _main(argv: list[str] | None, interrupted: list[bool]) -> int:
         print("vslam: interrupted (outputs written so far are kept)", file=sys.stderr)
         return 130
     except OSError as e:  # an output that cannot be written, a device that fails: the system's words, one line
-        if interrupted:
-            print("vslam: interrupted (outputs written so far are kept)", file=sys.stderr)
-            return 130
         print(f"vslam: error: {_os_error_line(e)}", file=sys.stderr)
         return 2
     except Exception as e:  # a bug, not a user mistake: say so in one line; -v shows where
-        if interrupted:  # Ctrl-C inside an import or a library that re-raised it as its own error (ImportError)
-            print("vslam: interrupted (outputs written so far are kept)", file=sys.stderr)
-            return 130
         if args.verbose:
             traceback.print_exc()
         print(f"vslam: internal error: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''} "

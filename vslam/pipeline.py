@@ -329,14 +329,13 @@ def _frontend_process(seq: Sequence, n: int, cfg: PipelineConfig):
 
 def _skipped_frames(seq: Sequence, received: list[int], n_total: int) -> list[int]:
     """Indices of the frames the run should have read but the reader skipped (they did not decode): the holes in
-    the indices received, the reader's own list, and the missing tail when the reading stopped early. The holes
-    count too because a front-end process reads (and skips) in a child, whose list is not ours."""
+    the indices received, and the missing tail when the reading stopped early. Taken from the indices, not from
+    the reader's ``skipped`` list: a front-end process reads (and skips) in a child, whose list is not ours, and a
+    video lists its lost frames for the whole file, also past where the run stopped."""
     expected = np.asarray(getattr(seq, "indices", np.arange(len(seq))), np.int64)
     got = set(received)
     last = max(received) if received else -1
     holes = {int(i) for i in expected[expected <= last] if int(i) not in got}
-    wanted = set(expected[expected <= last].tolist())  # a reader may list lost frames beyond where the run stopped
-    holes |= {int(i) for i, _ in getattr(seq, "skipped", []) if int(i) not in got and int(i) in wanted}
     missing = n_total - len(received) - len(holes)
     if missing > 0:  # the reading stopped before the frames it was asked for: the rest did not decode
         holes |= set(expected[expected > last][:missing].tolist())

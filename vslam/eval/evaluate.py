@@ -119,8 +119,8 @@ def _scale_check(assoc, method: str, monocular: bool) -> tuple[float | None, str
     except EvalError:
         return None, ""
     s = fit.s
-    gt_xyz, est_xyz = np.asarray(gt_evo.positions_xyz), np.asarray(est_evo.positions_xyz)
-    sim3_rmse = float(np.sqrt(np.mean(np.sum((gt_xyz - est_xyz) ** 2, axis=1))))
+    sim3_rmse = ate(gt_evo, est_evo)[0].translation.rmse
+    gt_xyz = np.asarray(gt_evo.positions_xyz)
     spread = float(np.sqrt(np.mean(np.sum((gt_xyz - gt_xyz.mean(axis=0)) ** 2, axis=1))))
     if abs(s - 1.0) <= SCALE_WARN or spread < max(SCALE_MIN_SPREAD_M, SCALE_SPREAD_PER_ATE * sim3_rmse):
         return s, ""
