@@ -129,7 +129,7 @@ def network_speed(device: str = "auto", frames: int = 20, repeats: int = 3, thre
     import torch
 
     from vslam.data.tum import TumRgbdSequence
-    from vslam.device import pick_device
+    from vslam.nn.device import pick_device
     from vslam.dynamic.config import DynamicConfig
     from vslam.dynamic.detector import default_weights, load_detector
     from vslam.dynamic.masking import in_boxes

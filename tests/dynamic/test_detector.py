@@ -11,7 +11,7 @@ from vslam.dynamic.attention import ATTENTION, make_attention  # noqa: E402
 from vslam.dynamic.detector import Detector, letterbox, load_detector, save_checkpoint  # noqa: E402
 from vslam.dynamic.loss import ciou, detection_loss  # noqa: E402
 from vslam.dynamic.model import DetectorConfig, YoloDetector, decode, fuse_for_inference, recalibrate_bn  # noqa: E402
-from vslam.dynamic.nms import batched_nms, box_iou, nms  # noqa: E402
+from vslam.nn.ops import batched_nms, box_iou, nms  # noqa: E402
 
 torch.set_num_threads(1)
 TINY = dict(width=0.125, num_classes=2)
@@ -174,7 +174,7 @@ def test_committed_tiny_model_finds_a_held_out_synthetic_mover():
 def test_device_choice():
     """"auto" is the CPU where torch sees no GPU, asking for CUDA there is a config error naming the field, and
     the network input is the pixels scaled to [0, 1], on whichever device."""
-    from vslam.device import pick_device
+    from vslam.nn.device import pick_device
     from vslam.dynamic.config import DynamicConfig
     from vslam.dynamic.detector import to_tensor
     from vslam.errors import ConfigError

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 
 from vslam.dynamic.model import SCALES, DetectorConfig, YoloDetector, decode, fuse_for_inference, mask_outputs
 from vslam.errors import ConfigError
-from vslam.dynamic.nms import batched_nms
+from vslam.nn.ops import batched_nms
 from vslam.resources import shipped_model
 
 
@@ -146,7 +146,7 @@ def default_weights() -> Path:
 
 def load_model(path: str | Path, field: str = "slam.dynamic.weights") -> tuple[YoloDetector, dict]:
     """``field``: the config field that named ``path``, for the error when it is missing."""
-    from vslam.checkpoint import load_state, read_checkpoint, reading
+    from vslam.nn.checkpoint import load_state, read_checkpoint, reading
 
     if not Path(path).is_file():
         raise ConfigError(f"{path}: detector weights not found ({field})")

@@ -60,7 +60,7 @@ class DynamicFilter:
         self._prev: Features | None = None  # the previous frame's keypoints, all of them
 
     def _load(self, path: str | Path, field_name: str) -> object:
-        from vslam.device import pick_device
+        from vslam.nn.device import pick_device
         from vslam.dynamic.detector import load_detector
 
         det = load_detector(path, conf=self.cfg.score_threshold, field=f"slam.dynamic.{field_name}",

@@ -7,6 +7,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from vslam.nn.ops import box_intersection_np as box_intersection, box_iou_np as box_iou  # noqa: F401 (re-exported)
+
 
 def dilate(mask: np.ndarray, px: int) -> np.ndarray:
     """(H,W) bool mask grown by ``px`` pixels (square structuring element)."""
@@ -39,25 +41,6 @@ def in_boxes(raw_uv: np.ndarray, boxes: np.ndarray, pad: float = 0.0, grow: floa
     py = pad + grow * (b[:, 3] - b[:, 1])
     hit = (x >= b[:, 0] - px) & (x <= b[:, 2] + px) & (y >= b[:, 1] - py) & (y <= b[:, 3] + py)
     return hit.any(axis=1)
-
-
-def box_intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(K,4), (M,4) boxes x1,y1,x2,y2 -> (K,M) areas of their intersections."""
-    a = np.asarray(a, dtype=np.float64).reshape(-1, 4)
-    b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
-    w = np.clip(np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None)
-    h = np.clip(np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None)
-    return w * h
-
-
-def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(K,4), (M,4) boxes x1,y1,x2,y2 -> (K,M) intersection over union."""
-    a = np.asarray(a, dtype=np.float64).reshape(-1, 4)
-    b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
-    inter = box_intersection(a, b)
-    area = lambda x: (x[:, 2] - x[:, 0]) * (x[:, 3] - x[:, 1])  # noqa: E731
-    union = area(a)[:, None] + area(b)[None, :] - inter
-    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
 
 
 @dataclass(frozen=True)

@@ -4,15 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from vslam.nn.ops import box_iou_np
+
 IOU_THRESHOLDS = np.linspace(0.5, 0.95, 10)  # COCO's AP50-95 thresholds (pycocotools: the same linspace)
-
-
-def _iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    lt = np.maximum(a[:, None, :2], b[None, :, :2])
-    rb = np.minimum(a[:, None, 2:], b[None, :, 2:])
-    inter = np.clip(rb - lt, 0, None).prod(-1)
-    area = lambda x: np.clip(x[:, 2:] - x[:, :2], 0, None).prod(-1)  # noqa: E731
-    return inter / (area(a)[:, None] + area(b)[None, :] - inter + 1e-9)
 
 
 def match(db: np.ndarray, ds: np.ndarray, gb: np.ndarray, iou_thr: float,
@@ -26,7 +20,7 @@ def match(db: np.ndarray, ds: np.ndarray, gb: np.ndarray, iou_thr: float,
     gt, ign = np.full(k, -1, np.int64), np.zeros(k, bool)
     order = np.argsort(-ds, kind="stable")
     used = np.zeros(len(gb), bool)
-    iou = _iou(db[order], gb) if len(gb) and k else np.zeros((k, 0))
+    iou = box_iou_np(db[order], gb) if len(gb) and k else np.zeros((k, 0))
     for r, i in enumerate(order):
         j = int(np.argmax(np.where(used, -1, iou[r]))) if len(gb) else -1
         if j >= 0 and not used[j] and iou[r, j] >= iou_thr:

@@ -90,7 +90,7 @@ def _nms(boxes: np.ndarray, scores: np.ndarray, cls: np.ndarray, iou: float) -> 
     """Class-agnostic, as the reference's ONNX runtime sample (``nms(dets, thresh=0.45)``)."""
     import torch
 
-    from vslam.dynamic.nms import nms
+    from vslam.nn.ops import nms
 
     if not len(boxes):
         return np.zeros(0, np.int64)

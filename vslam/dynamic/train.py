@@ -352,7 +352,7 @@ def _recipe(d: dict) -> dict:
 def _resume(last: Path, cfg: TrainConfig, model: YoloDetector, opt: torch.optim.Optimizer, dev: torch.device) -> int:
     """Model and optimiser state from ``last`` (read weights-only: a file planted in the output folder never runs
     code) -> the iteration to continue from."""
-    from vslam.checkpoint import load_state, read_checkpoint, reading
+    from vslam.nn.checkpoint import load_state, read_checkpoint, reading
 
     what, note = "detector training checkpoint", "resume refused"
     ck = read_checkpoint(last, what, ("model", "optimizer", "iteration", "train"), map_location=dev, note=note)

@@ -252,7 +252,7 @@ def detect_batch(model: ConvPointNet, images: list[np.ndarray], s: DetectSetting
 
 
 def save_convpoint(model: ConvPointNet, path: str | Path, meta: dict | None = None) -> Path:
-    from vslam.checkpoint import save_weights
+    from vslam.nn.checkpoint import save_weights
 
     return save_weights(model, {"channels": list(model.cfg.channels), "desc_dim": model.cfg.desc_dim}, path, meta)
 
@@ -266,7 +266,7 @@ def load_convpoint(path: str | Path, int8: bool = False) -> ConvPointNet | ConvP
 
 def _read_weights(path: str | Path) -> ConvPointNet:
     """The float network of a weights file, in the layout it was saved in (quantised from that layout)."""
-    from vslam.checkpoint import load_weights
+    from vslam.nn.checkpoint import load_weights
 
     return load_weights(path, "ConvPoint", "vslam train keypoints", lambda c: ConvPointNet(
         ConvPointConfig(tuple(int(v) for v in c["channels"]), int(c["desc_dim"]))), _looks_like)
@@ -315,7 +315,7 @@ class ConvPointExtractor:
     descriptor_kind = "float"
 
     def __init__(self, cfg):
-        from vslam.device import pick_device
+        from vslam.nn.device import pick_device
 
         self.cfg = cfg
         self.device = pick_device(cfg.device, "features.device")

@@ -330,7 +330,7 @@ RESUME_WHAT = "keypoint training checkpoint"
 def _resume(last: Path, model, dev) -> dict:
     """``last``'s dict with its model state applied (read weights-only: a file planted in the output folder never
     runs code). Optimiser, schedule and RNG states are applied by the stage they belong to."""
-    from vslam.checkpoint import load_state, read_checkpoint, reading
+    from vslam.nn.checkpoint import load_state, read_checkpoint, reading
 
     keys = ("model", "opt", "sched", "rng", "torch_rng", "stage", "step", "history")
     ck = read_checkpoint(last, RESUME_WHAT, keys, map_location=dev, note="resume refused")
@@ -347,7 +347,7 @@ def _train(cfg: KeypointTrainConfig, dev, rank: int, n_ranks: int, progress: Pro
     import torch
 
     from vslam import ddp
-    from vslam.checkpoint import reading
+    from vslam.nn.checkpoint import reading
     from vslam.features.convpoint import ConvPointConfig, ConvPointNet, batch_tensor, save_convpoint
     from vslam.features.shapes import render_shapes
     from vslam.paths import data_root

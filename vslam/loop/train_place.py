@@ -234,7 +234,7 @@ def _resume(last: Path, model, opt, sched, rng: np.random.Generator, dev) -> tup
     folder never runs code) -> (step, loss history)."""
     import torch
 
-    from vslam.checkpoint import load_state, read_checkpoint, reading
+    from vslam.nn.checkpoint import load_state, read_checkpoint, reading
 
     what, note = "place training checkpoint", "resume refused"
     keys = ("model", "opt", "sched", "step", "history", "rng", "torch_rng")

@@ -94,7 +94,7 @@ def preprocess(images: list[np.ndarray] | np.ndarray, size: tuple[int, int]) -> 
 
 
 def save_vladnet(model: VladNet, path: str | Path, meta: dict | None = None) -> Path:
-    from vslam.checkpoint import save_weights
+    from vslam.nn.checkpoint import save_weights
 
     cfg = model.cfg
     return save_weights(model, {"channels": list(cfg.channels), "clusters": cfg.clusters, "out_dim": cfg.out_dim,
@@ -103,7 +103,7 @@ def save_vladnet(model: VladNet, path: str | Path, meta: dict | None = None) -> 
 
 def load_vladnet(path: str | Path) -> VladNet:
     """Weights from a local file (never the network); eval mode, CPU."""
-    from vslam.checkpoint import load_weights
+    from vslam.nn.checkpoint import load_weights
 
     return load_weights(path, "VLADNet", "vslam train place", lambda c: VladNet(VladNetConfig(
         tuple(c["channels"]), int(c["clusters"]), int(c["out_dim"]), tuple(c["input_size"]), float(c["alpha"]))))
@@ -114,7 +114,7 @@ class VladNetDescriptor:
     ``device`` "auto": CUDA when torch sees a GPU (descriptors equal up to float rounding)."""
 
     def __init__(self, model: VladNet, threads: int = 0, device: str | torch.device = "auto"):
-        from vslam.device import pick_device
+        from vslam.nn.device import pick_device
 
         self.device = pick_device(device, "loop.device") if isinstance(device, str) else device
         self.model = model.eval().to(self.device)

@@ -10,8 +10,10 @@ network (a checkpoint for another number of classes, width or descriptor size) a
 first parameter that does not fit, its shape in the file and the shape the network expects, not torch's
 "Error(s) in loading state_dict".
 
-Weights files of ConvPoint and VLADNet (``save_weights`` / ``load_weights``) are one ``torch.save`` dict of
-``config`` (what rebuilds the network), ``state_dict`` and ``meta`` (the training's numbers). Only torch is
+Networks of the registry (``vslam.nn.registry``) are saved with ``save_model`` as ``{arch, conf, state_dict,
+meta}`` and rebuilt by ``load_model``. The older networks trained here still use their own dicts: ConvPoint and
+VLADNet ``{config, state_dict, meta}`` (``save_weights`` / ``load_weights``), the from-scratch detector
+``{model, config, names}`` (``vslam.dynamic.detector``). Only torch is
 imported, so the GPU machine (no gtsam / pycolmap) can train and load them.
 """
 
@@ -160,3 +162,42 @@ def load_weights(path: str | Path, name: str, command: str, build: Callable[[dic
         model = build(ck["config"])
     load_state(model, ck["state_dict"], p, what, looks_like=looks_like)
     return model.eval()
+
+
+# The one format of the networks in the registry (vslam.nn.registry): what rebuilds the network (``arch``, the
+# registry name, and ``conf``, its merged conf), its weights and ``meta`` (source, licence, data, the training's
+# numbers). Training checkpoints add their own keys (optimiser, progress) beside these.
+FORMAT_KEYS = ("arch", "conf", "state_dict", "meta")
+
+
+def save_model(model: torch.nn.Module, path: str | Path, arch: str, meta: dict | None = None, half: bool = False,
+               **extra: Any) -> Path:
+    """Write ``{arch, conf, state_dict, meta, **extra}`` atomically (an interrupted save leaves the old file).
+    ``half``: floating tensors stored as float16 (loading casts back to float32)."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.half() if half and v.is_floating_point() else v for k, v in model.state_dict().items()}
+    tmp = p.with_suffix(p.suffix + ".tmp")
+    torch.save({"arch": arch, "conf": dict(getattr(model, "conf", {})), "state_dict": state, "meta": meta or {},
+                **extra}, tmp)
+    tmp.replace(p)
+    return p
+
+
+def load_model(path: str | Path, registry: Any, field_name: str = "") -> tuple[torch.nn.Module, dict]:
+    """The network a ``save_model`` file describes, built through ``registry`` (a ``vslam.nn.registry.Registry``)
+    with the file's weights (float32), eval mode, CPU -> (model, the file's dict). A file of another family or
+    format, or weights that do not fit, is one ConfigError line naming the file."""
+    from vslam.errors import ConfigError
+
+    what = f"{registry.family} checkpoint"
+    note = f"set by {field_name}" if field_name else ""
+    ck = read_checkpoint(path, what, FORMAT_KEYS, note=note)
+    if ck["arch"] not in registry:
+        raise ConfigError(_message(Path(path), what, f"its network {ck['arch']!r} is not a {registry.family} "
+                                   f"(known: {', '.join(registry.names())})", note))
+    with reading(path, what, note):
+        model = registry.build(ck["arch"], ck["conf"])
+        state = {k: v.float() if v.is_floating_point() else v for k, v in ck["state_dict"].items()}
+    load_state(model, state, path, what, note=note)
+    return model.eval(), ck
