@@ -1,0 +1,1 @@
+"""Keypoint + descriptor networks of the ``KEYPOINTS`` registry (``vslam.nn.registry``)."""
