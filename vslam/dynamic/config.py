@@ -111,6 +111,10 @@ class DynamicConfig:
     # Off by default: the mask step's network time doubles (one takes 4.5 ms on an H200 against issue 5's 5 ms)
     extra_weights: tuple[str, ...] = ()
     img_size: int = 0  # detector input: the image's longer side resized to this; 0 = the size it was trained at
+    # YOLOX-style detectors: keep the frame's aspect (img_size its longer side, the shorter one rounded up to a
+    # multiple of 32) instead of the square input they were trained at; a street frame squashed into a square
+    # loses its people (KITTI 1241x376 at 1248 runs at 1248x384). The from-scratch detector always keeps it.
+    wide: bool = False
     device: str = "auto"  # detector: auto = CUDA when torch sees a GPU (same boxes up to float rounding), cpu, cuda
     geometric: GeometricConfig = field(default_factory=GeometricConfig)
 

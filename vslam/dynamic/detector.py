@@ -177,6 +177,28 @@ def _looks_like(state: Mapping[str, Any], cfg: DetectorConfig, n_names: int) -> 
 
 
 def load_detector(path: str | Path, img_size: int = 640, conf: float = 0.25, device: torch.device | str = "cpu",
-                  field: str = "slam.dynamic.weights") -> Detector:
+                  field: str = "slam.dynamic.weights") -> Any:
+    """The detector a checkpoint holds, in either format: a network of the registry (``{arch, conf, state_dict,
+    meta}``, ``vslam.nn.checkpoint.save_model``; a YOLOX -> ``YoloxDetector`` at its ``input_size``) or the
+    from-scratch detector's ``{model, config, names}`` (-> ``Detector`` at the size it was trained at, else
+    ``img_size``). Both return ``Detections`` from ``detect(image)``."""
+    from vslam.nn.checkpoint import FORMAT_KEYS, read_checkpoint
+
+    if not Path(path).is_file():
+        raise ConfigError(f"{path}: detector weights not found ({field})")
+    if all(k in read_checkpoint(path, "detector checkpoint") for k in FORMAT_KEYS):
+        return _load_registry_detector(path, conf, device, field)
     model, ckpt = load_model(path, field)
     return Detector(model, ckpt["names"], img_size=int(ckpt.get("img_size", img_size)), conf=conf, device=device)
+
+
+def _load_registry_detector(path: str | Path, conf: float, device: torch.device | str, field: str) -> Any:
+    from vslam.dynamic.yolox_detector import YoloxDetector
+    from vslam.nn.checkpoint import load_model as load_registry_model
+    from vslam.nn.detectors.yolox import YOLOX
+    from vslam.nn.registry import DETECTORS
+
+    model, _ = load_registry_model(path, DETECTORS, field)
+    if not isinstance(model, YOLOX):
+        raise ConfigError(f"{path}: detector {type(model).__name__} has no inference wrapper ({field})")
+    return YoloxDetector(model, img_size=int(model.conf["input_size"]), conf=conf, device=device)

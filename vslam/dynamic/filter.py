@@ -67,6 +67,8 @@ class DynamicFilter:
                             device=pick_device(self.cfg.device, "slam.dynamic.device"))
         if self.cfg.img_size:  # wide frames (KITTI 1226x370): people stay large enough at a larger input
             det.img_size = self.cfg.img_size
+        if hasattr(det, "wide"):  # a YOLOX-style detector: square input unless the config keeps the aspect
+            det.wide = self.cfg.wide
         return det
 
     def detect(self, frame: Frame) -> Instances | None:

@@ -16,6 +16,10 @@ reduction, hard sigmoid) followed by CBAM's spatial branch (7x7 conv on [mean, m
 It keeps CBAM's "what" + "where" split while its channel branch has no bottleneck and no second pooled path:
 C^2 + C + 98 weights against CBAM's 2 C^2/r + 98 and SE's 2 C^2/r, at one pooled vector per block.
 Tensors: x (B, C, H, W) -> same shape.
+
+``GatedAttention`` wraps a block as ``x + g * (block(x) - x)`` with a per-channel gate ``g`` that starts at zero:
+a pretrained network gains the block without any change of its outputs (the block is exactly the identity until
+fine-tuning moves ``g``; ReZero / LayerScale use the same zero-initialised residual scale).
 """
 
 from __future__ import annotations
@@ -79,6 +83,20 @@ ATTENTION: dict[str, Callable[[int], nn.Module]] = {
     "cbam": CBAM,
     "esea": ESEA,
 }
+
+
+class GatedAttention(nn.Module):
+    """``x + gate * (block(x) - x)``, ``gate`` (C,) initialised to zero: exactly ``x`` at the start (0 times a
+    finite number is 0 in floating point), and the gradient reaches ``gate`` from the first step (that of the
+    block follows once ``gate`` is non-zero)."""
+
+    def __init__(self, block: nn.Module, c: int):
+        super().__init__()
+        self.block = block
+        self.gate = nn.Parameter(torch.zeros(c))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.gate.view(1, -1, 1, 1) * (self.block(x) - x)
 
 
 def make_attention(name: str, c: int) -> nn.Module:

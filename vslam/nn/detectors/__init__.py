@@ -1,0 +1,1 @@
+"""Detector architectures of the registry (``vslam.nn.registry.DETECTORS``), one module per family."""
