@@ -82,3 +82,17 @@ def test_other_variant_file_is_one_line_error(tmp_path):
     torch.save(state, bad)
     with pytest.raises(ConfigError, match="unexpected tensor 'convhead1.weight'"):
         KEYPOINTS.pretrained("alike-t", source=str(bad))
+
+
+def test_nms_opencv_path_equals_torch_pooling():
+    """The CPU path (cv2.dilate) keeps exactly the maxima of the max-pooling path, ties and edges included."""
+    from vslam.nn.keypoints.alike import nms
+
+    g = torch.Generator().manual_seed(0)
+    for shape in [(1, 1, 37, 53), (2, 1, 64, 80)]:
+        x = torch.rand(shape, generator=g)
+        x = torch.where(torch.rand(shape, generator=g) < 0.3, (x * 8).round() / 8, torch.zeros(()))  # plateaus
+        fast = nms(x, 2)  # float32 on the CPU: OpenCV
+        pooled = nms(x.double(), 2).float()  # any other dtype: torch's pooling
+        assert torch.equal(fast, pooled)
+        assert 0 < int((fast > 0).sum()) < int((x > 0).sum())

@@ -1,7 +1,8 @@
 """Keypoint extractors behind one protocol, and descriptor matching.
 
-``EXTRACTORS`` maps a config name to a factory ``cfg -> Extractor``: "orb" (OpenCV) and "convpoint"
-(the learned detector + descriptor, ``features.convpoint``).
+``EXTRACTORS`` maps a config name to a factory ``cfg -> Extractor``: "orb" (OpenCV), "convpoint" (the learned
+detector + descriptor trained here, ``features.convpoint``) and "alike-t" / "alike-s" / "alike-n" (the public ALIKE
+networks in our architecture, ``features.alike``).
 """
 
 from __future__ import annotations
@@ -18,7 +19,14 @@ def _convpoint(cfg: FeatureConfig) -> Extractor:
     return ConvPointExtractor(cfg)
 
 
-EXTRACTORS: dict[str, Callable[[FeatureConfig], Extractor]] = {"orb": OrbExtractor, "convpoint": _convpoint}
+def _alike(cfg: FeatureConfig) -> Extractor:
+    from vslam.features.alike import AlikeExtractor
+
+    return AlikeExtractor(cfg)
+
+
+EXTRACTORS: dict[str, Callable[[FeatureConfig], Extractor]] = {"orb": OrbExtractor, "convpoint": _convpoint,
+                                                               "alike-t": _alike, "alike-s": _alike, "alike-n": _alike}
 
 
 def make_extractor(cfg: FeatureConfig) -> Extractor:

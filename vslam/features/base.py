@@ -53,6 +53,10 @@ class FeatureConfig:
     # per 640x480 frame on 2 Xeon threads), keypoints and descriptors a little off the float ones (held-out pairs:
     # matching score 0.742 vs 0.750, bench row keypoints-homography); SLAM ATE float vs int8: docs/features.md.
     int8: bool = True
+    # extractors alike-t / alike-s / alike-n: the network sees the image resized by this (0.5: a quarter of the
+    # cost; two-view pose accuracy and speed per setting in docs/features.md). ``weights`` "" = the shipped
+    # vslam/models/alike_<variant>.pt.
+    input_scale: float = 1.0
 
     def __post_init__(self) -> None:
         if self.n_features < 1:
@@ -60,6 +64,8 @@ class FeatureConfig:
         if self.n_levels < 1 or not self.scale_factor > 1.0:
             raise ConfigError(f"slam.features: n_levels must be >= 1 and scale_factor > 1, got {self.n_levels}, "
                               f"{self.scale_factor}")
+        if not 0.0 < self.input_scale <= 1.0:
+            raise ConfigError(f"slam.features.input_scale must be in (0, 1], got {self.input_scale}")
 
 
 @dataclass
