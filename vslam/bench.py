@@ -271,7 +271,8 @@ def _job_eval_detector(overrides: dict[str, Any]) -> dict[str, Any]:
     if not data:
         raise ConfigError("bench kind eval_detector needs set: data=[folder:split, ...]")
     det, threshold, name = build_detector(str(overrides.get("model", "")), bool(overrides.get("teacher", False)),
-                                          int(overrides.get("threads", 2)), int(overrides.get("img_size", 0)))
+                                          int(overrides.get("threads", 2)), int(overrides.get("img_size", 0)),
+                                          bool(overrides.get("wide", False)))
     sets = {}
     for spec in data:
         folder, _, split = spec.partition(":")

@@ -340,6 +340,9 @@ def build_parser() -> argparse.ArgumentParser:
     from vslam.dynamic.eval_detector import add_cli as add_eval_detector_cli
 
     add_eval_detector_cli(sub)
+    from vslam.dynamic.detect import add_cli as add_detect_cli
+
+    add_detect_cli(sub)
     _add_quiet(p)
     return p
 

@@ -93,7 +93,8 @@ def evaluate(records: list[Record], preds: list[Prediction], threshold: float) -
             sel = (p.classes == c) & (p.scores >= threshold)
             gt, ign = match(p.boxes[sel], p.scores[sel], rec.boxes[rec.labels == c], MATCH_IOU, rec.ignore)
             tp, fp = tp + int((gt >= 0).sum()), fp + int(((gt < 0) & ~ign).sum())
-        rep[f"AP50/{name}"], rep[f"AP50-95/{name}"] = ap[f"AP50/{name}"], ap[f"AP50-95/{name}"]
+        rep[f"AP50/{name}"], rep[f"AP75/{name}"], rep[f"AP50-95/{name}"] = (ap[f"AP50/{name}"], ap[f"AP75/{name}"],
+                                                                            ap[f"AP50-95/{name}"])
         rep[f"recall/{name}"] = tp / n_gt
         rep[f"precision/{name}"] = tp / (tp + fp) if tp + fp else float("nan")
     rep.update(mask_report(records, preds, threshold))
@@ -139,14 +140,14 @@ def mask_report(records: list[Record], preds: list[Prediction], threshold: float
 def format_report(rep: dict[str, Any], title: str) -> list[str]:
     """Markdown table, one row per class with ground truth."""
     masks = any(k.startswith("mask_iou/") for k in rep)
-    head = f"| {title} | GT | AP50 | AP50-95 | recall@{rep['threshold']:g} | precision@{rep['threshold']:g} |"
+    head = f"| {title} | GT | AP50 | AP75 | AP50-95 | recall@{rep['threshold']:g} | precision@{rep['threshold']:g} |"
     head += " mask IoU (matched) | its box as mask | GT box as mask | image mask IoU |" if masks else ""
     lines = [head, "|---" * (head.count("|") - 1) + "|"]
     f = lambda k: f"{rep[k]:.3f}" if rep.get(k) is not None and rep[k] == rep[k] else "–"  # noqa: E731 (NaN, None -> –)
     for name in EVAL_CLASSES:
         if not rep.get(f"n_gt/{name}"):
             continue
-        row = f"| {name} | {rep[f'n_gt/{name}']} | {f(f'AP50/{name}')} | {f(f'AP50-95/{name}')} | {f(f'recall/{name}')} | " \
+        row = f"| {name} | {rep[f'n_gt/{name}']} | {f(f'AP50/{name}')} | {f(f'AP75/{name}')} | {f(f'AP50-95/{name}')} | {f(f'recall/{name}')} | " \
               f"{f(f'precision/{name}')} |"
         if masks:
             row += f" {f(f'mask_iou/{name}')} | {f(f'box_mask_iou/{name}')} | {f(f'gt_box_mask_iou/{name}')} | " \
@@ -155,7 +156,8 @@ def format_report(rep: dict[str, Any], title: str) -> list[str]:
     return lines
 
 
-def build_detector(model: str, teacher: bool, threads: int, img_size: int = 0) -> tuple[BoxDetector, float, str]:
+def build_detector(model: str, teacher: bool, threads: int, img_size: int = 0,
+                   wide: bool = False) -> tuple[BoxDetector, float, str]:
     """-> (detector emitting every box above 0.001, its SLAM score threshold, a name). Ours: the checkpoint at
     ``model`` (default the shipped one) at ``img_size`` (0: the size it was trained at, as slam.dynamic.img_size),
     threshold ``DynamicConfig``'s; the teacher: FastestDet (``model`` = its ONNX file, default the data folder's;
@@ -179,7 +181,11 @@ def build_detector(model: str, teacher: bool, threads: int, img_size: int = 0) -
     path = Path(model) if model else default_weights()
     det = load_detector(path, conf=0.001, field="--model")
     det.img_size = img_size or det.img_size
-    return det, DynamicConfig().score_threshold, f"{path.name}@{det.img_size}"
+    if wide and not hasattr(det, "wide"):
+        raise ConfigError("--wide is for YOLOX-style detectors (the from-scratch detector always keeps the aspect)")
+    if wide:
+        det.wide = True
+    return det, DynamicConfig().score_threshold, f"{path.name}@{det.img_size}{' wide' if wide else ''}"
 
 
 def add_cli(sub: argparse._SubParsersAction) -> None:
@@ -193,6 +199,8 @@ def add_cli(sub: argparse._SubParsersAction) -> None:
                                                    "(default: SLAM's slam.dynamic.score_threshold; 0.5 for --teacher)")
     e.add_argument("--img-size", type=int, default=0, help="our detector's input size (longer side; 0 = the size "
                                                              "it was trained at, as slam.dynamic.img_size)")
+    e.add_argument("--wide", action="store_true", help="YOLOX-style detectors: keep the image's aspect (--img-size "
+                                                      "its longer side) instead of a square input")
     e.add_argument("--threads", type=int, default=2, help="CPU threads of the network")
     e.add_argument("--json", help="also write the report as JSON here")
     e.set_defaults(fn=cmd_eval_detector)
@@ -209,7 +217,7 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
         data = data_root() / data
     split: Split = args.split
     layout, records = load_records(data, split)
-    det, slam_threshold, name = build_detector(args.model, args.teacher, args.threads, args.img_size)
+    det, slam_threshold, name = build_detector(args.model, args.teacher, args.threads, args.img_size, args.wide)
     threshold = slam_threshold if args.threshold is None else args.threshold
     if not 0 <= threshold <= 1:
         raise ConfigError(f"--threshold is a score in [0, 1], got {threshold}")

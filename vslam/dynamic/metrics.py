@@ -62,15 +62,17 @@ def average_precision(dets: list[tuple[np.ndarray, np.ndarray, np.ndarray]], gts
 
 
 def detection_report(dets: list, gts: list, names: list[str], ignore: list[np.ndarray] | None = None) -> dict[str, float]:
-    """{AP50/<name>, AP50-95/<name>} per class with ground truth, plus mAP50 and mAP50-95 over those classes."""
+    """{AP50/<name>, AP75/<name>, AP50-95/<name>} per class with ground truth, plus mAP50 and mAP50-95 over those
+    classes."""
     out: dict[str, float] = {}
     ap50s, ap5095s = [], []
     for c, name in enumerate(names):
         ap50 = average_precision(dets, gts, c, 0.5, ignore)
         if np.isnan(ap50):
             continue
-        ap = float(np.mean([average_precision(dets, gts, c, t, ignore) for t in IOU_THRESHOLDS]))
-        out[f"AP50/{name}"], out[f"AP50-95/{name}"] = ap50, ap
+        aps = [average_precision(dets, gts, c, t, ignore) for t in IOU_THRESHOLDS]
+        ap = float(np.mean(aps))
+        out[f"AP50/{name}"], out[f"AP75/{name}"], out[f"AP50-95/{name}"] = ap50, aps[5], ap  # thresholds[5] = 0.75
         ap50s.append(ap50)
         ap5095s.append(ap)
     out["mAP50"] = float(np.mean(ap50s)) if ap50s else float("nan")
