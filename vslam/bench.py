@@ -48,15 +48,15 @@ SIDECAR_VERSION = 1
 STAGES = ("features", "depth", "pose", "mapping", "map_create", "map_fuse_cull", "map_ba", "map_wait", "map_loop")
 PER_FRAME = ("features", "depth", "pose", "total")  # run on every frame: median ms/frame
 # kinds run once whatever --repeat says (deterministic, or repeating their measurement inside the job)
-SINGLE_RUN_KINDS = ("place", "features", "detector", "speed", "line_ba", "eval_detector")
+SINGLE_RUN_KINDS = ("place", "features", "pose", "detector", "speed", "line_ba", "eval_detector")
 # kinds with a table of their own below the SLAM table
 OWN_TABLE_KINDS = ("fusion", "imu_preint", "batch", "ab") + SINGLE_RUN_KINDS
 
 @dataclass(frozen=True)
 class BenchRow:
     name: str
-    kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch", "place", "features", "detector", "ab",
-                  "speed", "line_ba", "eval_detector"] = "run"
+    kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch", "place", "features", "pose", "detector",
+                  "ab", "speed", "line_ba", "eval_detector"] = "run"
     config: str = ""  # pipeline YAML, relative to the suite file's folder's parent (the repo root) or absolute
     set: tuple[str, ...] = ()  # KEY=VALUE overrides
     note: str = ""
@@ -246,6 +246,23 @@ def _job_features(overrides: dict[str, Any]) -> dict[str, Any]:
     return {**res, "seconds": time.perf_counter() - t0, "peak_rss_mb": peak_rss_mb()}
 
 
+def _job_pose(overrides: dict[str, Any]) -> dict[str, Any]:
+    """Two-view relative pose AUC of keypoint methods on real pairs with ground truth (``set``: methods=[names],
+    keypoints, pairs, threads; ``features.pose_auc``)."""
+    import torch
+
+    from vslam.features.pose_auc import PoseBenchConfig, pose_benchmark, standard_methods
+    from vslam.paths import data_root
+
+    threads = int(overrides.get("threads", 2))
+    torch.set_num_threads(threads)
+    t0 = time.perf_counter()
+    cfg = PoseBenchConfig(n_keypoints=int(overrides.get("keypoints", 2000)), pairs=int(overrides.get("pairs", 50)))
+    names = tuple(str(m) for m in overrides.get("methods", ["orb", "sift", "alike-t"]))
+    res = pose_benchmark(standard_methods(cfg.n_keypoints, names), data_root(), cfg)
+    return {**res, "threads": threads, "seconds": time.perf_counter() - t0, "peak_rss_mb": peak_rss_mb()}
+
+
 def _job_detector(overrides: dict[str, Any]) -> dict[str, Any]:
     """Issue 5: the attention ablation (``set``: weights=[files], all trained with one recipe; ``dynamic.evaluate``)."""
     from vslam.dynamic.evaluate import evaluate_detectors
@@ -308,6 +325,8 @@ def execute_job(kind: str, config: str | None, overrides: dict[str, Any], out_di
         return _job_place(overrides)
     if kind == "features":
         return _job_features(overrides)
+    if kind == "pose":
+        return _job_pose(overrides)
     if kind == "detector":
         return _job_detector(overrides)
     if kind == "eval_detector":
@@ -656,6 +675,7 @@ def render_markdown(suite: BenchSuite, entries: list[tuple[BenchRow, dict[str, A
     lines += _imu_table([(row, e["result"]) for row, e in entries if row.kind == "imu_preint"])
     lines += _place_table([(row, e["result"]) for row, e in entries if row.kind == "place"])
     lines += _features_table([(row, e["result"]) for row, e in entries if row.kind == "features"])
+    lines += _pose_table([(row, e["result"]) for row, e in entries if row.kind == "pose"])
     lines += _detector_table([(row, e["result"]) for row, e in entries if row.kind == "detector"])
     lines += _eval_detector_table([(row, e["result"]) for row, e in entries if row.kind == "eval_detector"])
     lines += _speed_table([(row, e["result"]) for row, e in entries if row.kind == "speed"])
@@ -816,6 +836,13 @@ def _features_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     from vslam.features.evaluate import format_table
 
     return _report_tables(rows, "## Keypoints: ConvPoint vs ORB vs SIFT (`{name}`)", format_table)
+
+
+def _pose_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
+    """Two-view pose AUC at 5/10/20 degrees per pair set and extraction ms per frame, methods of one run."""
+    from vslam.features.pose_auc import format_table
+
+    return _report_tables(rows, "## Keypoints: two-view pose AUC (`{name}`)", format_table)
 
 
 def _detector_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
