@@ -55,13 +55,14 @@ def to_rgb(image: np.ndarray) -> np.ndarray:
 
 @torch.inference_mode()
 def extract(model: torch.nn.Module, image: np.ndarray, n: int, scale: float = 1.0, mask: np.ndarray | None = None,
-            select: Select | None = None, oversample: float = 3.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            select: Select | None = None, oversample: float = 3.0, min_score: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Keypoints of one uint8 image (H,W,3) BGR or (H,W) grey -> (xy (N,2) float64 pixels of ``image``, score (N,)
     float64, desc (N,D) float32 unit), N <= n.
 
     ``scale``: the network sees the image resized by it (area interpolation); ``mask`` (H,W) bool: True where
     keypoints are not wanted; ``select(xy, score, shape)`` -> indices to keep among ``oversample * n`` candidates
     (xy in network pixels, shape the network image's (h, w)); without it, the ``n`` strongest by descending score.
+    ``min_score``: only maxima scoring above it are keypoints (the benchmarks keep every maximum; SLAM does not).
     """
     h0, w0 = image.shape[:2]
     rgb = to_rgb(image)
@@ -76,7 +77,7 @@ def extract(model: torch.nn.Module, image: np.ndarray, n: int, scale: float = 1.
         smap = smap.masked_fill(torch.from_numpy(small), 0.0)  # a masked pixel is never a maximum above zero
     k = n if select is None else max(n, int(round(oversample * n)))
     idx, val = model.candidates(smap, k)
-    keep_nz = val > 0  # top-k on a sparse map also returns zeros: not keypoints
+    keep_nz = val > max(min_score, 0.0)  # top-k on a sparse map also returns zeros: not keypoints
     idx, val = idx[keep_nz], val[keep_nz]
     if select is not None and len(idx) > n:
         xy_int = torch.stack([idx % w, idx // w], 1).numpy().astype(np.float64)
@@ -94,9 +95,10 @@ def extract(model: torch.nn.Module, image: np.ndarray, n: int, scale: float = 1.
 
 
 class AlikeExtractor:
-    """The ``Extractor`` of ``features.extractor: alike-*``: ``n_features`` keypoints spread over the
-    ``grid_cols`` x ``grid_rows`` grid like ORB's (``orb.bucket``), float descriptors matched by L2
-    (``features.matching``)."""
+    """The ``Extractor`` of ``features.extractor: alike-*``: at most ``n_features`` keypoints scoring above
+    ``min_score``, spread over the ``grid_cols`` x ``grid_rows`` grid like ORB's (``orb.bucket``), float
+    descriptors matched by L2 (``features.matching``). The floor matters: the grid otherwise fills plain cells with
+    weak, poorly placed maxima, and SLAM's accuracy falls as they are added (docs/features.md)."""
 
     descriptor_kind = "float"
 
@@ -111,6 +113,6 @@ class AlikeExtractor:
 
     def detect(self, image: np.ndarray, camera: PinholeCamera, mask: np.ndarray | None = None) -> Features:
         xy, score, desc = extract(self.model, image, self.cfg.n_features, self.cfg.input_scale, mask, self._select,
-                                  self.cfg.oversample)
+                                  self.cfg.oversample, self.cfg.min_score)
         return Features(raw=xy, uv=camera.undistort_points(xy), desc=desc, octave=np.zeros(len(xy), np.int64),
                         response=score, scale_factor=self.cfg.scale_factor)

@@ -57,6 +57,7 @@ class FeatureConfig:
     # cost; two-view pose accuracy and speed per setting in docs/features.md). ``weights`` "" = the shipped
     # vslam/models/alike_<variant>.pt.
     input_scale: float = 1.0
+    min_score: float = 0.2  # alike-*: score floor of a keypoint (the published code's threshold)
 
     def __post_init__(self) -> None:
         if self.n_features < 1:
