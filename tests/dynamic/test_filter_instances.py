@@ -220,7 +220,7 @@ def test_slam_with_instance_masks_keeps_more_static_keypoints_at_box_accuracy():
         st = SlamTracker(seq.calibration, "rgbd", SlamConfig())
         if mask is not None:
             cfg = DynamicConfig(enabled=True, source="detector", mask=mask)  # type: ignore[arg-type]
-            st.dynamic = DynamicFilter(cfg, st.cam, detector=_Oracle(frames), extra=[])
+            st = SlamTracker(seq.calibration, "rgbd", SlamConfig(dynamic=cfg), detector=_Oracle(frames))
         poses, static, mover = [], 0, 0
         for fr in frames:
             est = st.track(fr)
@@ -237,3 +237,27 @@ def test_slam_with_instance_masks_keeps_more_static_keypoints_at_box_accuracy():
     assert s_inst > s_box + 1000  # of ~54000 static keypoints
     assert (s_all - s_inst) < 0.85 * (s_all - s_box)  # a quarter fewer static keypoints lost
     assert ate_inst <= ate_box + 0.001 and ate_inst < 0.5 * ate_all
+
+
+def test_filter_takes_a_registry_checkpoint_with_its_input_settings():
+    """slam.dynamic.weights naming the shipped YOLOX checkpoint (the registry's format): the filter runs it at
+    img_size / wide as configured and masks its person boxes (boxes: the network has no mask head)."""
+    from pathlib import Path
+
+    import cv2
+
+    from vslam.dynamic.yolox_detector import YoloxDetector
+    from vslam.paths import data_root
+
+    photo = data_root() / "penn_fudan/PennFudanPed/JPEGImages/FudanPed00001.jpg"
+    model = Path(__file__).resolve().parents[2] / "vslam" / "models" / "yolox_nano_slam.pt"
+    if not photo.is_file() or not model.is_file():
+        pytest.skip(f"needs {photo} (set VSLAM_DATA) and the shipped {model.name}")
+    image = cv2.imread(str(photo))
+    cam = PinholeCamera(image.shape[1], image.shape[0], 500.0, 500.0, image.shape[1] / 2, image.shape[0] / 2)
+    cfg = DynamicConfig(enabled=True, source="detector", weights=str(model), img_size=576, wide=True, device="cpu")
+    f = DynamicFilter(cfg, cam)
+    assert isinstance(f.detector, YoloxDetector) and f.detector.img_size == 576 and f.detector.wide
+    assert f.detector.input_size(image.shape[:2]) == (576, 576)  # 559x536 -> 576 wide, 552.3 -> 576 high
+    objs = f.detect(Frame(0, 0.0, image))
+    assert len(objs.boxes) == 2 and all(m is None for m in objs.masks)  # the two pedestrians, as boxes
