@@ -139,8 +139,8 @@ def test_slam_never_tracks_or_maps_masked_segments():
         worst = 0.0
         for fr in frames:
             assert st.track(fr).tracked
-            assert len(st._line_feats) > 5
-            worst = max(worst, float(_masked_fraction(st._line_feats.raw, mask).max()))
+            assert len(st._stage("lines").feats) > 5
+            worst = max(worst, float(_masked_fraction(st._stage("lines").feats.raw, mask).max()))
         assert (worst < 1.0) == enabled
 
 

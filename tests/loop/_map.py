@@ -29,6 +29,6 @@ def room_map() -> tuple[SlamTracker, list, np.ndarray]:
 
 def query(st: SlamTracker, frame):
     """Keypoints, depth-derived virtual right x of a frame, as the tracker computes them."""
-    feats, right = st._extract(frame)
-    depth = st._depth(frame, feats, right)
+    feats, right = st.front_end.extract(frame)
+    depth = st.front_end.depth(frame, feats, right)
     return feats, stereo_ur(feats.uv, depth, st.cam.fx, st.baseline)

@@ -159,7 +159,7 @@ def test_front_end_computed_ahead_gives_the_same_trajectory(tmp_path):
     ahead = [st.track(f, st.frontend(f)).T_world_cam for f in seq]
     np.testing.assert_array_equal(np.array(ahead), inline.poses)
     st = SlamTracker(seq.calibration, "stereo", replace(cfg, lines_beside_networks=True))  # LSD on a thread of its own
-    assert st._lines_pool is not None
+    assert st._stage("lines").pool is not None
     beside = [st.track(f, st.frontend(f)).T_world_cam for f in seq]
     st.finish(tmp_path / "beside")
     np.testing.assert_array_equal(np.array(beside), inline.poses)

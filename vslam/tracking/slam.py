@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import logging
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -20,25 +19,25 @@ import numpy as np
 
 from vslam.backend.ba import BackendConfig, StereoCamera
 from vslam.data.types import Calibration, Frame, SensorKind
-from vslam.dynamic import DynamicConfig, DynamicFilter
-from vslam.dynamic.masking import Instances
+from vslam.dynamic import DynamicConfig
 from vslam.features import FeatureConfig, Features, make_extractor
-from vslam.features.lines import LineConfig, LineFeatures
-from vslam.features.depth import depth_rgbd, depth_stereo, stereo_ur
-from vslam.features.stereo import depth_stereo_rectified, is_rectified
+from vslam.features.depth import stereo_ur
+from vslam.features.lines import LineConfig
+from vslam.features.stereo import is_rectified
 from vslam.geometry.se3 import inv_T
 from vslam.loop.config import LoopConfig
-from vslam.mapping.line_map import LineSlam
 from vslam.mapping.local_mapping import LocalMapper, MappingConfig
-from vslam.mapping.map import Map, PoseLink
+from vslam.mapping.map import Map
 from vslam.tracking.atlas import Atlas, AtlasConfig
 from vslam.tracking.baseline import FrameEstimate
-from vslam.tracking.dense import DenseConfig, DenseOdometry
+from vslam.tracking.dense import DenseConfig
 from vslam.tracking.frame_log import FrameLog
+from vslam.tracking.frontend import FrameView, FrontEnd, FrontEndMaker
 from vslam.tracking.initializer import InitConfig
 from vslam.tracking.mono_init import MonoInitializer
+from vslam.tracking.stages import Stage, build_stages
 from vslam.tracking.tracker import Tracker, TrackingConfig, TrackResult, need_keyframe
-from vslam.tracking.vio import Vio, VioConfig
+from vslam.tracking.vio import VioConfig
 
 log = logging.getLogger(__name__)
 
@@ -99,39 +98,16 @@ class SlamConfig:
     blas_threads: int = 1
 
 
-@dataclass
-class FrontEnd:
-    """What one frame's images alone determine (no map state), from ``SlamTracker.frontend``: keypoints, the
-    right image's keypoints (stereo), line segments (lines on), keypoint depth (None: computed in ``track``,
-    after dynamic filtering), the detector's boxes and instance masks of dynamic objects
-    (``slam.dynamic.source=detector``, ``DynamicFilter.detect``), and ms per stage where it ran."""
-
-    feats: Features
-    right: Features | None
-    lines: LineFeatures | None
-    depth: np.ndarray | None
-    ms: dict[str, float]
-    objects: Instances | None = None
-
-
-@dataclass
-class FrameView:
-    """What the last ``track`` call saw, for viewers (``vslam.viz``): references, never copied, never read back
-    by tracking. ``front``: the frame's ``FrontEnd`` (all keypoints, segments, detector boxes); ``kept`` (M,)
-    indices of the keypoints dynamic filtering let through (None: all); ``point_ids`` (M,) map point matched per
-    kept keypoint, -1 none (None: not tracked against a map, e.g. the map's first frame); ``moving`` (M,) bool,
-    flagged by the geometric motion check (None: no check)."""
-
-    front: FrontEnd
-    kept: np.ndarray | None = None
-    point_ids: np.ndarray | None = None
-    moving: np.ndarray | None = None
+__all__ = ["FrameView", "FrontEnd", "SlamConfig", "SlamTracker", "write_map_ply"]  # FrameView, FrontEnd: vslam.tracking.frontend
 
 
 class SlamTracker:
     """Feed frames in order with ``track(frame)``; ``finish(out_dir)`` writes the keyframes and the map."""
 
-    def __init__(self, calibration: Calibration, sensor: SensorKind, cfg: SlamConfig = SlamConfig()):
+    def __init__(self, calibration: Calibration, sensor: SensorKind, cfg: SlamConfig = SlamConfig(),
+                 detector: object | None = None):
+        """``detector``: an object with ``detect(image) -> Detections`` that replaces the configured network of
+        ``slam.dynamic`` (source=detector): a user's own detector, or a test's oracle."""
         self.calib, self.sensor, self.cfg = calibration, sensor, cfg
         self.cam = calibration.cam0
         if sensor == "stereo":
@@ -165,19 +141,10 @@ class SlamTracker:
         mapping = replace(cfg.mapping, ba_lag_frames=0) if cfg.inertial.enabled else cfg.mapping
         self.mapper = LocalMapper(self.map, self.cam, self.stereo_cam, sensor, mapping, cfg.backend)
         self.mono_init = MonoInitializer(self.cam, cfg.init) if sensor == "mono" else None
-        self.vio = Vio(calibration, sensor, cfg.inertial, self.map) if cfg.inertial.enabled else None
-        self.dynamic = DynamicFilter(cfg.dynamic, self.cam) if cfg.dynamic.enabled else None
-        self.dense = DenseOdometry(self.cam, cfg.dense) if sensor == "rgbd" and cfg.dense.enabled else None
+        self.stages: list[Stage] = build_stages(self, detector)  # the optional parts (``vslam.tracking.stages``)
         self.mapper.inertial = self.vio
-        self.lines = (LineSlam(self.map, self.cam, self.stereo_cam, sensor, cfg.lines, cfg.backend, calibration)
-                      if cfg.lines.enabled else None)
-        self.mapper.lines = self.lines
-        beside = cfg.lines_beside_networks
-        if beside is None:
-            beside = getattr(getattr(self.extractor, "device", None), "type", "cpu") == "cuda"
-        self._lines_pool = ThreadPoolExecutor(1, thread_name_prefix="lines") if self.lines is not None and beside else None
-        self._line_feats, self._line_ids = None, None
-        self._pre_init_lines: dict[int, LineFeatures] = {}  # monocular: segments of frames before the map exists
+        self.front_end = FrontEndMaker(self.extractor, calibration, sensor, cfg, self.rectified,
+                                       self._stage("lines"), self.dynamic)
         # New maps need a map to grow (not localize_only). Monocular-inertial maps take their scale and gravity
         # from the IMU initialisation, which would have to run again for every map: not built, the IMU bridges.
         self.map_id = 0
@@ -203,99 +170,80 @@ class SlamTracker:
         self.last_kf_frame = 0
         self._prev_tracked = False
         self._last_ids: np.ndarray | None = None  # map points tracked in the last tracked frame (first round)
-        self._n_frames = 0
+        self.n_frames = 0
         self._pre_init: list[tuple[int, Features]] = []  # monocular: (frame index, keypoints) before the map
         # (keyframe, its image, frame count) whose local BA the worker is solving and whose loop step waits for it
         self._pending: tuple | None = None
         self._rel_scale = 1.0  # a monocular loop's scale at the keyframe, for the frame tracked after it
         self.view: FrameView | None = None  # the last frame as tracking saw it (read-only, for vslam.viz)
 
+    # -- the stages ----------------------------------------------------------------
+    def _stage(self, name: str) -> Stage | None:
+        return next((s for s in self.stages if s.name == name), None)
+
+    @property
+    def vio(self):
+        """The visual-inertial state (``vslam.tracking.vio.Vio``), None without an IMU."""
+        st = self._stage("inertial")
+        return st.vio if st is not None else None  # type: ignore[attr-defined]
+
+    @property
+    def lines(self):
+        """The line map of the current map (``vslam.mapping.line_map.LineSlam``), None with lines off."""
+        st = self._stage("lines")
+        return st.lines if st is not None else None  # type: ignore[attr-defined]
+
+    @property
+    def dynamic(self):
+        """The dynamic-object filter (``vslam.dynamic.DynamicFilter``), None when off."""
+        st = self._stage("dynamic")
+        return st.dynamic if st is not None else None  # type: ignore[attr-defined]
+
+    @property
+    def dense(self):
+        """The RGB-D depth tracker (``vslam.tracking.dense.DenseOdometry``), None when off."""
+        st = self._stage("dense")
+        return st.dense if st is not None else None  # type: ignore[attr-defined]
+
     # -- per-frame --------------------------------------------------------------
-    def _extract(self, frame: Frame) -> tuple[Features, Features | None]:
-        """Keypoints of the image and (stereo) of the right image: one batch when the extractor has
-        ``detect_many`` (a network: one forward pass for the pair)."""
-        right_img = frame.right if self.sensor == "stereo" else None
-        if right_img is not None and hasattr(self.extractor, "detect_many") and right_img.shape == frame.image.shape:
-            left, right = self.extractor.detect_many([frame.image, right_img], [self.cam, self.calib.cam1])
-            return left, right
-        feats = self.extractor.detect(frame.image, self.cam)
-        if right_img is None or not len(feats):
-            return feats, None
-        return feats, self.extractor.detect(right_img, self.calib.cam1)  # type: ignore[arg-type]
-
     def frontend(self, frame: Frame) -> FrontEnd:
-        """The image-only stages of ``track``; safe to run on one other thread while ``track`` runs (the
-        extractors are then used by that thread alone, the map is not read)."""
-        t0 = time.perf_counter()
-        pending = self._lines_pool.submit(self._detect_lines, frame) if self._lines_pool is not None else None
-        feats, right = self._extract(frame)
-        t1 = time.perf_counter()
-        lines = self._detect_lines(frame) if pending is None else None
-        t2 = time.perf_counter()
-        # dynamic filtering drops keypoints first, and rectified stereo matching depends on which are left
-        depth = self._depth(frame, feats, right) if self.dynamic is None else None
-        t3 = time.perf_counter()
-        objects = self.dynamic.detect(frame) if self.dynamic is not None else None
-        t4 = time.perf_counter()
-        if pending is not None:  # beside the networks, "lines" is what was left to wait for after them
-            lines = pending.result()
-        t5 = time.perf_counter()
-        ms = {"features": (t1 - t0) * 1e3, "lines": (t2 - t1 + t5 - t4) * 1e3, "depth": (t3 - t2) * 1e3,
-              "detector": (t4 - t3) * 1e3}
-        return FrontEnd(feats, right, lines, depth, ms, objects)
-
-    def _detect_lines(self, frame: Frame) -> LineFeatures | None:
-        if self.lines is None:
-            return None
-        return self.lines.detect(frame.image, self._line_depth(frame), frame.right if self.sensor == "stereo" else None)
-
-    def _depth(self, frame: Frame, feats: Features, right: Features | None) -> np.ndarray:
-        tc = self.cfg.tracking
-        if self.sensor == "rgbd":
-            return depth_rgbd(frame.depth, feats, tc.min_depth, tc.max_depth)
-        if self.sensor == "stereo" and right is not None and len(feats):
-            if self.rectified:
-                return depth_stereo_rectified(frame.image, frame.right, feats, right, self.calib, tc.min_depth,
-                                              tc.max_depth, n_levels=self.cfg.features.n_levels)
-            return depth_stereo(feats, right, self.calib, tc.min_depth, tc.max_depth, tc.stereo_max_px)
-        return np.full(len(feats), np.nan)
+        """The image-only part of ``track`` (``vslam.tracking.frontend``); safe to run on one other thread while
+        ``track`` runs (the extractors are then used by that thread alone, the map is not read)."""
+        return self.front_end.make(frame)
 
     def track(self, frame: Frame, front: FrontEnd | None = None) -> FrameEstimate:
         """One frame; ``front``: its ``frontend(frame)`` if computed ahead (else computed here)."""
         t0 = time.perf_counter()
-        if self.vio is not None:
-            self.vio.add_imu(frame)
+        for s in self.stages:
+            s.on_frame(frame)
         if front is None:
             front = self.frontend(frame)
-        feats, lines, t_dyn = front.feats, front.lines, time.perf_counter()
-        if self.dynamic is not None:  # issue 5: keypoints and segments on moving objects reach neither tracking nor mapping
-            kept = np.flatnonzero(self.dynamic.keep(frame, feats, front.objects))
-            feats = feats.subset(kept)
-            if lines is not None and len(lines):
-                lines = lines.subset(np.flatnonzero(self.dynamic.keep_segments(frame, lines.raw, lines.segs)))
-        ms_dynamic = (time.perf_counter() - t_dyn) * 1e3
-        self.view = FrameView(front, kept if self.dynamic is not None else None)
-        if self.lines is not None:
-            self._line_feats, self._line_ids = lines, None
-            if self.mono_init is not None and self.ref_kf is None:  # the initialiser's reference may be any recent frame
-                self._pre_init_lines[frame.index] = self._line_feats
-                self._pre_init_lines = dict(list(self._pre_init_lines.items())[-(self.mono_init.max_tries + 2):])
+        feats, lines, kept = front.feats, front.lines, None
+        for s in self.stages:
+            feats, lines, k = s.filter(frame, front, feats, lines)
+            if k is not None:  # indices into what the previous filter kept
+                kept = k if kept is None else kept[k]
+        self.view = FrameView(front, kept)
+        for s in self.stages:
+            s.on_features(self, frame, feats, lines)
         t1 = time.perf_counter()
-        depth = front.depth if front.depth is not None else self._depth(frame, feats, front.right)
+        # depth computed ahead holds every keypoint; after a filter it is measured on those left (rectified
+        # stereo matching depends on which they are)
+        depth = front.depth if front.depth is not None and kept is None else self.front_end.depth(frame, feats, front.right)
         ur = stereo_ur(feats.uv, depth, self.cam.fx, self.baseline) if self.baseline > 0 else np.full(len(feats), np.nan)
         ms_map: dict[str, float] = {}
         ms_flush = 0.0  # (features are extracted while the worker may still be solving)
-        if self._pending is not None and self._n_frames - self._pending[2] >= self.mapper.cfg.ba_lag_frames:
+        if self._pending is not None and self.n_frames - self._pending[2] >= self.mapper.cfg.ba_lag_frames:
             ms_map = self._flush_mapping()  # the worker's BA is due: tracking goes on from the adjusted map
             ms_flush = ms_map["flush"]
         t2 = time.perf_counter()
         est = FrameEstimate(self.T_world_cam, tracked=False, n_features=len(feats))
-        if self.vio is not None:
-            est.imu = self.vio.imu_state
+        for s in self.stages:
+            s.annotate(est)
         if self.ref_kf is None:
             est.tracked = self._initialize(frame, feats, depth, ur, self._restart)
-            if self.dynamic is not None:
-                self.dynamic.observe(self.T_world_cam, est.tracked)
+            for s in self.stages:
+                s.drop(self, est.tracked, None, feats, depth, ur)
             est.status = "tracked" if est.tracked else "uninitialised"
             if self._restart is not None:
                 # between two maps: no pose was measured ("lost", the last one held), or the new map starts here
@@ -315,9 +263,8 @@ class SlamTracker:
             t3 = time.perf_counter()
         else:
             T_pred = self.T_world_cam @ self.velocity
-            T_imu = self.vio.predict(frame.timestamp) if self.vio is not None else None
-            if T_imu is not None:  # once initialised, IMU propagation replaces constant velocity
-                T_pred = T_imu
+            for s in self.stages:
+                T_pred = s.predict(frame, T_pred)
             res = self._measure(frame, feats, ur, T_pred)
             self.view.point_ids = res.point_ids  # (``_drop_moving`` replaces, never edits, the array)
             est.n_matches, est.n_inliers, est.tracked = res.n_matches, res.n_inliers, res.ok
@@ -330,13 +277,13 @@ class SlamTracker:
                 self._last_ids = res.point_ids[res.point_ids >= 0]
             else:
                 self._lost(frame, feats, depth, ur, T_pred, est)
-            if self.vio is not None:
-                self.vio.update(frame.timestamp, self.T_world_cam, res.ok)
-            if self.dynamic is not None:
-                feats, depth, ur = self._drop_moving(res, feats, depth, ur)
+            for s in self.stages:
+                s.on_pose(self, frame, res.ok)
+            for s in self.stages:
+                feats, depth, ur = s.drop(self, res.ok, res, feats, depth, ur)
             t3 = time.perf_counter()
-            vio_kf = self.vio is not None and res.ok and est.status != "no_depth" and self.vio.wants_keyframe(frame.timestamp)
-            want = res.ok and not self.cfg.localize_only and (self._want_keyframe(frame, res.n_inliers, res.point_ids, depth, res.method) or vio_kf)
+            stage_kf = any(s.wants_keyframe(frame, res, est.status) for s in self.stages)
+            want = res.ok and not self.cfg.localize_only and (self._want_keyframe(frame, res.n_inliers, res.point_ids, depth, res.method) or stage_kf)
             if want and self._pending is not None:
                 # The previous keyframe's BA lands first and the decision is taken again on the adjusted map:
                 # decided on the stale one (its outlier observations still counted), keyframes came every
@@ -344,53 +291,40 @@ class SlamTracker:
                 # keyframes back while BA runs (ORB-SLAM's "mapping busy") cost accuracy (TUM teddy 0.0044 ->
                 # 0.0051 m with an 8-frame lag, KITTI 07 mono 0.293 -> 0.359 m with 5).
                 ms_map = _add_ms(ms_map, self._flush_mapping())
-                want = self._want_keyframe(frame, res.n_inliers, res.point_ids, depth, res.method) or vio_kf
+                want = self._want_keyframe(frame, res.n_inliers, res.point_ids, depth, res.method) or stage_kf
             if want:
                 kf = self.map.add_keyframe(frame.index, frame.timestamp, self.T_world_cam, feats, depth, ur)
-                if self.dense is not None:
-                    if res.method == "dense" and self.dense.last_link is not None:  # BA keeps the ICP's motion
-                        ref, T_ref_cam, cov = self.dense.last_link
-                        self.map.links.append(PoseLink(ref, kf.id, T_ref_cam, cov))
-                    self.dense.set_reference(kf.id, kf.T_world_cam, frame.depth, frame.image)
-                if self.vio is not None:
-                    self.vio.new_keyframe(kf.id)
-                if self.lines is not None:
-                    self.lines.add_keyframe(kf.id, kf.T_world_cam, self._line_feats, self._line_ids, self._line_depth(frame))
+                for s in self.stages:
+                    s.on_keyframe(self, kf, frame, res)
                 ms_map = _add_ms(ms_map, self.mapper.process(kf, res.point_ids))
-                if self.vio is not None:
-                    self.vio.after_keyframe(kf.id)
-                self.ref_kf, self.last_kf_frame = kf.id, self._n_frames
+                for s in self.stages:
+                    s.after_mapping(self, kf)
+                self.ref_kf, self.last_kf_frame = kf.id, self.n_frames
                 if self.mapper.pending is not None:  # local BA in the worker; the loop step waits for it
-                    self._pending = (kf, frame.image, self._n_frames)
+                    self._pending = (kf, frame.image, self.n_frames)
                 elif self.loop is not None:
                     ms_map = _add_ms(ms_map, self._loop_step(kf, frame.image))
                 # local BA (and a loop correction) moved the keyframe: the frame's pose follows it
                 self.T_world_cam = kf.T_world_cam.copy()
                 if self.atlas is not None and self.atlas.maps:
                     ms_map = _add_ms(ms_map, self._try_merge(kf, frame.image))
-        if self.vio is not None:
-            self._init_inertial()
+        for s in self.stages:
+            s.end_frame(self)
         t4 = time.perf_counter()
         if est.tracked:
             self._t_tracked = frame.timestamp
         est.map_id = self.map_id
         self._prev_tracked = est.tracked
-        self._n_frames += 1
+        self.n_frames += 1
         est.T_world_cam = self.T_world_cam.copy()
         self.frames.record(frame.index, self.ref_kf, self.T_world_cam)
         ms_map.pop("flush", None)
         # stage costs where they ran; those computed ahead on the prefetch thread are not in this call's time
-        ms_depth = (t2 - t1) * 1e3 - ms_flush + (front.ms["depth"] if front.depth is not None else 0.0)
+        ms_depth = (t2 - t1) * 1e3 - ms_flush + (front.ms["depth"] if front.depth is not None and kept is None else 0.0)
         est.times_ms = {"features": front.ms["features"], "depth": ms_depth, "pose": (t3 - t2) * 1e3,
                         "mapping": (t4 - t3) * 1e3 + ms_flush, **{f"map_{k}": v for k, v in ms_map.items()}}
-        if self.dynamic is not None:
-            est.times_ms["dynamic"] = ms_dynamic
-            if front.objects is not None:
-                est.times_ms["detector"] = front.ms["detector"]
-        if self.lines is not None:
-            est.times_ms["lines"] = front.ms["lines"]
-            est.n_lines = len(self._line_feats)
-            est.n_line_inliers = int((self._line_ids >= 0).sum()) if self._line_ids is not None else 0
+        for s in self.stages:
+            s.report(est, front)
         return est
 
     def _loop_step(self, kf, image: np.ndarray) -> dict[str, float]:
@@ -420,48 +354,6 @@ class SlamTracker:
         self.T_world_cam = kf.T_world_cam @ rel
         ms["flush"] = (time.perf_counter() - t) * 1e3
         return ms
-
-    def _line_depth(self, frame: Frame) -> np.ndarray | None:
-        """The depth map a keyframe's new lines are measured with (RGB-D); stereo lines come from the end-point
-        depths the rig measured (``LineSlam.from_rig``) and from two keyframes, mono lines from two keyframes in
-        local mapping (``LineSlam.triangulate``)."""
-        return frame.depth if self.sensor == "rgbd" else None
-
-    def _drop_moving(self, res: TrackResult, feats: Features, depth: np.ndarray, ur: np.ndarray) -> tuple[Features, np.ndarray, np.ndarray]:
-        """Geometric check on the tracked pose (``vslam.dynamic``): keypoints found moving leave the frame before
-        mapping, and the map points they matched are deleted so later frames cannot track against them."""
-        moving = self.dynamic.observe(self.T_world_cam, res.ok)  # type: ignore[union-attr]
-        self.view.moving = moving  # type: ignore[union-attr]
-        if not moving.any():
-            return feats, depth, ur
-        for pid in res.point_ids[moving & (res.point_ids >= 0)]:
-            self.map.remove_point(int(pid))
-        keep = np.flatnonzero(~moving)
-        res.point_ids = res.point_ids[keep]
-        return feats.subset(keep), depth[keep], ur[keep]
-
-    def _init_inertial(self) -> None:
-        """Static / dynamic IMU initialisation and its refinements (``Vio.try_initialize``). Monocular, the map was
-        just scaled to metres, so the tracker's own pose state follows; after a dynamic alignment one VI BA links
-        every keyframe (ORB-SLAM3's inertial BA after its initialisation)."""
-        out = self.vio.try_initialize()  # type: ignore[union-attr]
-        if out is None:
-            return
-        T, scale = out
-        self.T_world_cam = self.vio.transform_pose(self.T_world_cam, T, scale)  # type: ignore[union-attr]
-        self.frames.transform(T, scale)  # monocular: the frames tracked so far were at the old map scale
-        if self.lines is not None:
-            self.lines.transform(T, scale)
-        self.velocity = self.velocity.copy()
-        self.velocity[:3, 3] *= scale
-        if self.vio.method == "dynamic" and self.ref_kf is not None:  # type: ignore[union-attr]  # (and refinements)
-            last = max(self.map.keyframes)
-            self.vio.full_chain = True  # type: ignore[union-attr]  # one VI BA over every keyframe
-            self.mapper.bundle_adjust(last)
-            self.vio.full_chain = False  # type: ignore[union-attr]
-            self.vio.after_keyframe(last)  # type: ignore[union-attr]
-            if self.last_kf_frame == self._n_frames:  # this frame is that keyframe: follow the BA
-                self.T_world_cam = self.map.keyframes[last].T_world_cam.copy()
 
     def _backfill(self) -> dict[int, np.ndarray]:
         """Monocular, right after the two-view initialisation: poses of the frames seen before it, by descriptor
@@ -498,14 +390,10 @@ class SlamTracker:
                                                 self.cfg.backend, self.cfg.init_ba)
             if kfs is None:
                 return False
-            self.ref_kf, self.last_kf_frame = kfs[1].id, self._n_frames
+            self.ref_kf, self.last_kf_frame = kfs[1].id, self.n_frames
             self.T_world_cam = kfs[1].T_world_cam.copy()
-            if self.lines is not None:  # the two views' segments, so the first keyframes can triangulate lines
-                for k in kfs:
-                    lf = self._line_feats if k is kfs[1] else self._pre_init_lines.get(k.frame_index)
-                    if lf is not None:
-                        self.lines.add_keyframe(k.id, k.T_world_cam, lf, None, None)
-                self._pre_init_lines = {}
+            for s in self.stages:
+                s.on_two_view_map(self, kfs, frame)
             if self.loop is not None:  # the reference view's image is gone: an image descriptor sees only the second
                 for k in kfs:
                     self.loop.add_keyframe(k, frame.image if k is kfs[1] else None)
@@ -514,14 +402,12 @@ class SlamTracker:
             return False
         T0 = np.eye(4) if T0 is None else T0
         kf = self.map.add_keyframe(frame.index, frame.timestamp, T0, feats, depth, ur)
-        if self.dense is not None:
-            self.dense.set_reference(kf.id, kf.T_world_cam, frame.depth, frame.image)
-        if self.lines is not None:
-            self.lines.add_keyframe(kf.id, kf.T_world_cam, self._line_feats, None, self._line_depth(frame))
+        for s in self.stages:
+            s.on_keyframe(self, kf, frame, None)
         self.mapper.process(kf, np.full(len(feats), -1, np.int64))
         if self.loop is not None:
             self.loop.add_keyframe(kf, frame.image)
-        self.ref_kf, self.last_kf_frame = kf.id, self._n_frames
+        self.ref_kf, self.last_kf_frame = kf.id, self.n_frames
         self.T_world_cam = T0.copy()
         return True
 
@@ -549,11 +435,8 @@ class SlamTracker:
                                  last_ids=self._last_ids)
         if not res.ok and self.loop is not None and self.cfg.loop.relocalise:  # place recognition over all keyframes
             res = self.loop.relocalise(self.tracker, feats, ur, frame.image) or res
-        if res.ok and self.lines is not None:  # issue 6: the pose on points + matched map lines
-            res.T_world_cam, self._line_ids = self.lines.refine_tracked(
-                res.T_world_cam, res.point_ids, feats, ur, self._line_feats, self.ref_kf, self.cfg.tracking.local_keyframes)
-        if not res.ok and self.dense is not None:  # too few features (issue 38): ICP of the depth against the keyframe's
-            res = self.dense.track_frame(frame, T_pred, self.map, len(feats)) or res
+        for s in self.stages:  # lines refine a tracked pose; dense depth tracking tries a lost one
+            res = s.measure(self, frame, feats, ur, T_pred, res)
         return res
 
     def _lost(self, frame: Frame, feats: Features, depth: np.ndarray, ur: np.ndarray, T_pred: np.ndarray,
@@ -583,14 +466,11 @@ class SlamTracker:
         """Make ``m`` the map every stage works on."""
         self.map = self.tracker.map = self.mapper.map = self.frames.map = m
         self.mapper.recent = [p for p in self.mapper.recent if p in m.points]
-        if self.vio is not None:
-            self.vio.map = m
         self._last_ids = None
         if self.loop is not None:
             self.loop.map = m
-        if self.lines is not None:  # lines live in one map: the new map grows its own
-            self.lines = LineSlam(m, self.cam, self.stereo_cam, self.sensor, self.cfg.lines, self.cfg.backend, self.calib)
-            self.mapper.lines = self.lines
+        for s in self.stages:
+            s.on_map(self, m)
 
     def _new_map(self, frame: Frame, feats: Features, depth: np.ndarray, ur: np.ndarray, T0: np.ndarray) -> bool:
         """Archive the current map and start a new one: at once from this frame's depth (RGB-D / stereo; -> True
@@ -613,8 +493,8 @@ class SlamTracker:
             self.loop.db = KeyframeDatabase(self.loop.descriptor.dim)
             self.loop._groups = []
         self._use_map(self.map.successor())
-        if self.vio is not None:
-            self.vio.new_map()
+        for s in self.stages:
+            s.on_new_map()
         self.ref_kf, self.velocity, self._t_tracked = None, np.eye(4), None
         log.info("frame %d: tracking lost; map %d started", frame.index, self.map_id)
         if self.mono_init is None:
@@ -707,8 +587,10 @@ class SlamTracker:
         tc = self.cfg.tracking
         if self.sensor != "mono" and int(np.isfinite(depth).sum()) < tc.min_depth_points:
             return False  # a keyframe without depth would add no points
-        if method == "dense":  # depth ICP (vslam.tracking.dense): its reference fell behind, or features are back
-            return self.dense.wants_keyframe or int(np.isfinite(depth).sum()) >= tc.kf_min_inliers  # type: ignore
+        for s in self.stages:  # a stage that measured the frame (depth ICP) has its own rule
+            d = s.decides_keyframe(method, depth, tc.kf_min_inliers)
+            if d is not None:
+                return d
         ref = self.map.keyframes[self.ref_kf]  # type: ignore[index]
         min_obs = min(3, len(self.map.keyframes))  # ORB-SLAM: 2 while the map has <= 2 keyframes; 1 for the first
         ref_ids = ref.point_ids[ref.point_ids >= 0]
@@ -717,14 +599,14 @@ class SlamTracker:
         close = np.isfinite(depth) & (depth < tc.close_baselines * self.baseline)
         n_close_tracked = int(np.sum(close & (point_ids >= 0)))
         n_close_untracked = int(np.sum(close & (point_ids < 0)))
-        return need_keyframe(n_inliers, ref_tracked, self._n_frames - self.last_kf_frame, n_close_tracked,
+        return need_keyframe(n_inliers, ref_tracked, self.n_frames - self.last_kf_frame, n_close_tracked,
                              n_close_untracked, self.sensor, tc)
 
     # -- outputs ------------------------------------------------------------------
     def map_stats(self) -> dict[str, int]:
         stats = self.map.stats()
-        if self.lines is not None:
-            stats.update(self.lines.stats())
+        for s in self.stages:
+            stats.update(s.stats())
         return stats
 
     @property
@@ -750,22 +632,23 @@ class SlamTracker:
         with lines on also ``map_lines.ply`` (line set: two end points per map line)."""
         from vslam.data.trajectory import Trajectory, write_trajectory
 
-        if self._lines_pool is not None:
-            self._lines_pool.shutdown()
+        for s in self.stages:
+            if hasattr(s, "close"):
+                s.close()
         if self._pending is not None:
             self._flush_mapping()
         self.mapper.close()
-        if self.vio is not None:
-            self.vio.finish()
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
+        written = {}
+        for s in self.stages:
+            written.update(s.finish(self, out))
         kfs = sorted(self.map.keyframes.values(), key=lambda k: k.timestamp)
         stamps = np.array([k.timestamp for k in kfs], dtype=np.float64)
         poses = np.array([k.T_world_cam for k in kfs]).reshape(-1, 4, 4)
         paths = {"keyframes": write_trajectory(out / "keyframes.tum.txt", Trajectory(stamps, poses), "tum")}
         paths["map"] = write_map_ply(out / "map.ply", self.map.points_xyz(np.array(list(self.map.points), np.int64)))
-        if self.lines is not None:
-            paths["lines"] = self.lines.write_ply(out / "map_lines.ply")
+        paths.update(written)
         if self.loop is not None:
             paths["loops"] = self.loop.write_stats(out / "loops.json")
         if self.cfg.save_map:
