@@ -43,7 +43,9 @@ def load_alike(name: str, weights: str | Path = "") -> torch.nn.Module:
     model, ck = load_model(path, KEYPOINTS, "features.weights")
     if ck["arch"] != name:
         raise ConfigError(f"{path}: an {ck['arch']} checkpoint, but features.extractor is {name}")
-    return model.fused()  # BatchNorm folded into the convolutions: inference only
+    # BatchNorm folded into the convolutions and NHWC layout: inference only; at half resolution on one thread
+    # ~1.4x faster than NCHW with BN (docs/features.md)
+    return model.fused().to(memory_format=torch.channels_last)
 
 
 def to_rgb(image: np.ndarray) -> np.ndarray:
