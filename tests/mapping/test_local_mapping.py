@@ -12,7 +12,7 @@ from vslam.geometry.se3 import make_T, so3_exp
 from vslam.geometry.triangulation import triangulate_points
 from vslam.mapping.local_mapping import GatheredPoints, LocalMapper, MappingConfig
 from vslam.mapping.map import Map
-from vslam.tracking.tracker import project
+from vslam.geometry.camera import project
 
 CAM = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
 

@@ -12,7 +12,8 @@ from vslam.features.base import Features
 from vslam.features.depth import stereo_ur
 from vslam.geometry.se3 import inv_T
 from vslam.mapping.map import Map
-from vslam.tracking.tracker import Tracker, TrackingConfig, project
+from vslam.geometry.camera import project
+from vslam.tracking.tracker import Tracker, TrackingConfig
 
 CAM = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
 BACKEND = BackendConfig()

@@ -105,11 +105,40 @@ def no_pairs_text(t_a: np.ndarray, t_b: np.ndarray, what_a: str, what_b: str, wi
             f"are {other_list}'s times shifted?)")
 
 
+def associate(t_a: np.ndarray, t_b: np.ndarray, max_diff: float) -> tuple[np.ndarray, np.ndarray]:
+    """One-to-one matching of two timestamp lists, as TUM's associate.py does it.
+
+    Every pair closer than max_diff seconds is a candidate; candidates are
+    taken greedily by increasing difference, skipping those whose either side
+    is already used. Returns index arrays (ia, ib) sorted by ia.
+    Candidates are found by binary search, O((N + M) log M), not all N*M pairs.
+    """
+    t_a = np.asarray(t_a, dtype=np.float64)
+    t_b = np.asarray(t_b, dtype=np.float64)
+    lo = np.searchsorted(t_b, t_a - max_diff, side="left")
+    hi = np.searchsorted(t_b, t_a + max_diff, side="right")
+    ia = np.repeat(np.arange(len(t_a)), hi - lo)
+    ib = np.concatenate([np.arange(a, b) for a, b in zip(lo, hi)]) if len(t_a) else np.zeros(0, np.int64)
+    diff = np.abs(t_a[ia] - t_b[ib])
+    keep = diff < max_diff  # associate.py uses a strict bound
+    ia, ib, diff = ia[keep], ib[keep], diff[keep]
+    used_a = np.zeros(len(t_a), bool)
+    used_b = np.zeros(len(t_b), bool)
+    out_a: list[int] = []
+    out_b: list[int] = []
+    for k in np.lexsort((ib, ia, diff)):
+        a, b = int(ia[k]), int(ib[k])
+        if not used_a[a] and not used_b[b]:
+            used_a[a] = used_b[b] = True
+            out_a.append(a)
+            out_b.append(b)
+    order = np.argsort(out_a)
+    return np.asarray(out_a, np.int64)[order], np.asarray(out_b, np.int64)[order]
+
+
 def _suspect_shift(t_a: np.ndarray, t_b: np.ndarray, paired: int, max_diff: float) -> tuple[float, int] | None:
     """(shift s, pairs after removing it) when the partner list's first and last times are both off by about
     the same s, far beyond max_diff, and removing s pairs clearly more frames; else None."""
-    from vslam.data.tum import associate
-
     if len(t_a) < 2 or len(t_b) < 2 or max_diff <= 0:
         return None
     s0, s1 = float(t_b[0] - t_a[0]), float(t_b[-1] - t_a[-1])

@@ -25,7 +25,7 @@ from vslam.data.camera_file import CAMERA_FILE_NAME, CameraFile, read_camera_fil
 from vslam.data.association import check as check_pairing
 from vslam.data.association import check_depth_image, no_pairs_text
 from vslam.data.association import report as pairing_report
-from vslam.data.tum import associate
+from vslam.data.association import associate
 from vslam.data.types import Association, Calibration, Frame, ImuSamples, PinholeCamera, SensorKind, Sequence
 from vslam.errors import DatasetError
 

@@ -26,7 +26,7 @@ from vslam.data.textio import check_increasing, read_rows
 from vslam.data.association import check as check_pairing
 from vslam.data.association import check_depth_image, no_pairs_text
 from vslam.data.association import report as pairing_report
-from vslam.data.tum import associate
+from vslam.data.association import associate
 from vslam.data.types import Association, Frame, SensorKind, Sequence
 from vslam.errors import DatasetError
 

@@ -25,6 +25,7 @@ from typing import cast
 import cv2
 import numpy as np
 
+from vslam.data.association import associate
 from vslam.data.association import check as check_pairing
 from vslam.data.association import check_depth_image, no_pairs_text
 from vslam.data.association import report as pairing_report
@@ -107,37 +108,6 @@ def read_file_list(list_path: Path, root: Path, what: str) -> tuple[np.ndarray, 
         if not f.is_file():
             raise DatasetError(list_path, f"listed file {f} does not exist", ln)
     return t, files
-
-
-def associate(t_a: np.ndarray, t_b: np.ndarray, max_diff: float) -> tuple[np.ndarray, np.ndarray]:
-    """One-to-one matching of two timestamp lists, as TUM's associate.py does it.
-
-    Every pair closer than max_diff seconds is a candidate; candidates are
-    taken greedily by increasing difference, skipping those whose either side
-    is already used. Returns index arrays (ia, ib) sorted by ia.
-    Candidates are found by binary search, O((N + M) log M), not all N*M pairs.
-    """
-    t_a = np.asarray(t_a, dtype=np.float64)
-    t_b = np.asarray(t_b, dtype=np.float64)
-    lo = np.searchsorted(t_b, t_a - max_diff, side="left")
-    hi = np.searchsorted(t_b, t_a + max_diff, side="right")
-    ia = np.repeat(np.arange(len(t_a)), hi - lo)
-    ib = np.concatenate([np.arange(a, b) for a, b in zip(lo, hi)]) if len(t_a) else np.zeros(0, np.int64)
-    diff = np.abs(t_a[ia] - t_b[ib])
-    keep = diff < max_diff  # associate.py uses a strict bound
-    ia, ib, diff = ia[keep], ib[keep], diff[keep]
-    used_a = np.zeros(len(t_a), bool)
-    used_b = np.zeros(len(t_b), bool)
-    out_a: list[int] = []
-    out_b: list[int] = []
-    for k in np.lexsort((ib, ia, diff)):
-        a, b = int(ia[k]), int(ib[k])
-        if not used_a[a] and not used_b[b]:
-            used_a[a] = used_b[b] = True
-            out_a.append(a)
-            out_b.append(b)
-    order = np.argsort(out_a)
-    return np.asarray(out_a, np.int64)[order], np.asarray(out_b, np.int64)[order]
 
 
 class TumRgbdSequence(Sequence):

@@ -25,7 +25,7 @@ from vslam.features.matching import match_by_projection, match_mutual
 from vslam.geometry.se3 import inv_T, make_T
 from vslam.loop.config import LoopConfig
 from vslam.mapping.map import Map
-from vslam.tracking.tracker import pnp_setup, project
+from vslam.geometry.camera import pnp_setup, project
 
 
 @dataclass

@@ -25,7 +25,7 @@ from vslam.features.matching import match_by_projection, match_epipolar, match_m
 from vslam.geometry.se3 import inv_T
 from vslam.geometry.triangulation import fundamental, triangulate_points
 from vslam.mapping.map import KeyFrame, Map
-from vslam.tracking.tracker import project
+from vslam.geometry.camera import project
 
 log = logging.getLogger(__name__)
 

@@ -23,6 +23,7 @@ from vslam.backend.pose_only import pose_covariance
 from vslam.data.types import PinholeCamera, SensorKind
 from vslam.features.base import Features
 from vslam.features.matching import match_by_projection, match_mutual
+from vslam.geometry.camera import pnp_setup, project
 from vslam.geometry.se3 import inv_T, make_T
 from vslam.mapping.map import Map
 
@@ -103,17 +104,6 @@ class TrackResult:
     tried_reference: bool = False  # the projection step fell back on the reference keyframe, which failed
 
 
-def project(T_world_cam: np.ndarray, X: np.ndarray, cam: PinholeCamera, min_depth: float = 1e-3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """World points (P,3) -> ideal pixels (P,2), depth (P,), mask in front of the camera and inside the image."""
-    T = inv_T(T_world_cam)
-    Xc = X @ T[:3, :3].T + T[:3, 3]
-    z = Xc[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = np.stack([cam.fx * Xc[:, 0] / z + cam.cx, cam.fy * Xc[:, 1] / z + cam.cy], axis=1)
-    ok = (z > min_depth) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height - 1)
-    return uv, z, ok
-
-
 def need_keyframe(n_inliers: int, ref_tracked: int, frames_since: int, n_close_tracked: int, n_close_untracked: int,
                   sensor: SensorKind, cfg: TrackingConfig) -> bool:
     """ORB-SLAM's rule (Tracking::NeedNewKeyFrame, local mapping always idle here): insert when
@@ -128,20 +118,6 @@ def need_keyframe(n_inliers: int, ref_tracked: int, frames_since: int, n_close_t
     few = sensor != "mono" and n_inliers < cfg.kf_min_inliers
     weak = n_inliers < ratio * ref_tracked or close_short or few
     return bool((weak and n_inliers > 15) or (frames_since >= cfg.kf_max_frames and n_inliers >= cfg.min_inliers))
-
-
-def pnp_setup(cam: PinholeCamera, max_error_px: float, seed: int, min_trials: int,
-              max_trials: int) -> tuple[pycolmap.Camera, pycolmap.AbsolutePoseEstimationOptions]:
-    """pycolmap pinhole camera of ideal pixels + seeded LO-RANSAC options for ``estimate_absolute_pose`` /
-    ``estimate_and_refine_absolute_pose`` (one setup for tracking and loop verification; the fixed seed keeps runs
-    deterministic)."""
-    pycam = pycolmap.Camera(model="PINHOLE", width=cam.width, height=cam.height, params=[cam.fx, cam.fy, cam.cx, cam.cy])
-    ao = pycolmap.AbsolutePoseEstimationOptions()
-    ao.ransac.max_error = max_error_px
-    ao.ransac.random_seed = seed
-    ao.ransac.min_num_trials = min_trials
-    ao.ransac.max_num_trials = max_trials
-    return pycam, ao
 
 
 class Tracker:
