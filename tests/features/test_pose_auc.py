@@ -61,5 +61,5 @@ def test_unknown_method_is_one_line():
 
 def test_table_lists_every_method_and_set():
     res = {"kitti_k1": {"orb": {"auc@5": 40.0, "auc@10": 60.0, "auc@20": 80.0}},
-           "ms": {"kitti": {"orb": 9.6}}, "n_keypoints": 2000, "ransac_px": 1.0}
+           "ms": {"kitti": {"orb": 9.6}}, "n_keypoints": 2000, "ransac_px": 1.0, "threads": 1, "seconds": 3.0}
     assert format_table(res)[-1] == "| orb | 40/60/80 | 10 |"

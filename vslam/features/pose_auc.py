@@ -188,7 +188,7 @@ def standard_methods(n: int, names: tuple[str, ...]) -> dict[str, Method]:
 
 def format_table(res: dict) -> list[str]:
     """Markdown rows: method | AUC@5/10/20 per pair set | ms per sequence."""
-    sets = [k for k in res if k not in ("ms", "n_keypoints", "ransac_px")]
+    sets = [k for k, v in res.items() if k != "ms" and isinstance(v, dict)]  # "<seq>_k<gap>"
     methods = list(res[sets[0]]) if sets else []
     head = "| method | " + " | ".join(s.replace("_k", " k=") for s in sets) + " | " + \
         " | ".join(f"ms {s}" for s in res["ms"]) + " |"
