@@ -76,7 +76,7 @@ def test_no_output_lost_on_crash(tmp_path):
 def test_networks_get_the_cores_the_tracking_thread_leaves_and_threads_are_restored(tmp_path, monkeypatch):
     import torch
 
-    import vslam.pipeline as pl
+    import vslam.pipeline.runtime as pl
 
     seq = SyntheticSequence(SyntheticConfig(n_frames=3, width=160, height=120, n_movers=0), sensor="rgbd")
     seen: list[int] = []
@@ -168,17 +168,17 @@ def test_skipped_frames_are_the_holes_the_readers_list_and_a_missing_tail():
     stopped before the frames asked for. Frames left out on purpose (stride, drop) are not skipped."""
     from types import SimpleNamespace
 
-    from vslam.pipeline import _skipped_frames
+    from vslam.pipeline import skipped_frames
 
     class Seq(SimpleNamespace):
         def __len__(self):
             return 10
 
-    assert _skipped_frames(Seq(skipped=[]), list(range(10)), 10) == []
-    assert _skipped_frames(Seq(skipped=[]), [0, 1, 3, 4], 5) == [2]  # a hole
-    assert _skipped_frames(Seq(skipped=[(9, "x")]), [0, 1, 2], 10) == [3, 4, 5, 6, 7, 8, 9]  # stopped early
+    assert skipped_frames(Seq(skipped=[]), list(range(10)), 10) == []
+    assert skipped_frames(Seq(skipped=[]), [0, 1, 3, 4], 5) == [2]  # a hole
+    assert skipped_frames(Seq(skipped=[(9, "x")]), [0, 1, 2], 10) == [3, 4, 5, 6, 7, 8, 9]  # stopped early
     stride = Seq(skipped=[(4, "bad")], indices=np.array([0, 2, 4, 6, 8]))
-    assert _skipped_frames(stride, [0, 2, 6, 8], 5) == [4]
-    assert _skipped_frames(Seq(skipped=[]), [0, 1, 2], 3) == []  # max_frames: nothing missing
+    assert skipped_frames(stride, [0, 2, 6, 8], 5) == [4]
+    assert skipped_frames(Seq(skipped=[]), [0, 1, 2], 3) == []  # max_frames: nothing missing
     # a reader that found a lost frame beyond where the run stopped (--max-frames) does not count it
-    assert _skipped_frames(Seq(skipped=[(3, "bad"), (9, "bad")]), [0, 1, 2, 4, 5], 5) == [3]
+    assert skipped_frames(Seq(skipped=[(3, "bad"), (9, "bad")]), [0, 1, 2, 4, 5], 5) == [3]

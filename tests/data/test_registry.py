@@ -29,8 +29,21 @@ DOWNLOAD = Path(__file__).resolve().parents[2] / "datasets" / "download.py"
 
 
 def test_readers_table() -> None:
-    assert READERS == {"tum": TumRgbdSequence, "kitti": KittiSequence, "euroc": EurocSequence,
+    readers = dict(READERS)
+    synthetic = readers.pop("synthetic")
+    assert readers == {"tum": TumRgbdSequence, "kitti": KittiSequence, "euroc": EurocSequence,
                        "images": ImageFolderSequence, "video": VideoSequence, "bag": BagSequence, "live": LiveSequence}
+    seq = synthetic(sensor="stereo", synthetic={"n_frames": 3, "width": 160, "height": 120})
+    assert len(seq) == 3 and seq.frame(0).right is not None
+
+
+def test_open_dataset_names_the_synthetic_field() -> None:
+    from vslam.data.config import DatasetConfig
+    from vslam.data.registry import open_dataset
+
+    assert len(open_dataset(DatasetConfig(kind="synthetic", synthetic={"n_frames": 4}))) == 4
+    with pytest.raises(ConfigError, match="dataset.synthetic.n_frame"):
+        open_dataset(DatasetConfig(kind="synthetic", synthetic={"n_frame": 4}))
 
 
 def test_detects_each_layout(tmp_path: Path) -> None:

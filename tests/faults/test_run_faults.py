@@ -151,12 +151,12 @@ def test_output_folder_not_writable(cli, tmp_path):
 
 
 def test_full_disk_is_one_line_naming_the_file_and_what_was_written(cli, tum40, tmp_path, monkeypatch):
-    import vslam.pipeline
+    import vslam.pipeline.run
 
     def full(path, *a, **k):
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
-    monkeypatch.setattr(vslam.pipeline, "write_report", lambda res, out, title, **kw: full(Path(out) / "metrics.json"))
+    monkeypatch.setattr(vslam.pipeline.run, "write_report", lambda res, out, title, **kw: full(Path(out) / "metrics.json"))
     out = tmp_path / "out"
     rc, _, err = cli("run", "-c", TUM, "--data", tum40, "--max-frames", 10, "-o", out, *FAST)
     one_error_line(rc, err, "metrics.json: No space left on device", "holds", "trajectory.tum.txt", "groundtruth.tum.txt",

@@ -3,9 +3,10 @@
     seq = open_sequence("../shared/data/euroc/V1_01_easy_micro", sensor="mono")
 
 Readers are plain classes in a dict (``READERS``); ``DETECTORS`` lists, in
-order, how a folder is recognised. To add a family (the synthetic generator
-will), add its class to READERS and, if it has a layout of its own, a
-detector to DETECTORS; an explicit ``kind=`` always wins over detection.
+order, how a folder is recognised. To add a family, add its class to READERS
+and, if it has a layout of its own, a detector to DETECTORS; an explicit
+``kind=`` always wins over detection. ``open_dataset`` opens what a run
+config's ``dataset:`` section names (the synthetic generator included).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from vslam.data.bag import BagSequence, is_bag
+from vslam.data.config import DatasetConfig
 from vslam.data.euroc import EurocSequence, is_euroc_layout
 from vslam.data.images import ImageFolderSequence, is_images_layout
 from vslam.data.kitti import KittiSequence, is_kitti_layout
@@ -24,6 +26,17 @@ from vslam.data.tum import TumRgbdSequence, is_tum_layout
 from vslam.data.types import Sequence
 from vslam.data.video import VideoSequence, is_video_file
 from vslam.errors import ConfigError, DatasetError
+from vslam.paths import data_root
+
+def _synthetic(path: str | Path = "", sensor: str = "rgbd", synthetic: dict[str, Any] | None = None) -> Sequence:
+    """The synthetic generator as a reader: ``synthetic`` holds ``SyntheticConfig`` fields (config section
+    ``dataset.synthetic``); imported on use, like the renderer it needs."""
+    from vslam.config import from_dict
+    from vslam.data.synthetic import SyntheticConfig, SyntheticSequence
+
+    scfg = from_dict(SyntheticConfig, dict(synthetic or {}), "dataset.synthetic", prefix="dataset.synthetic.")
+    return SyntheticSequence(scfg, sensor=sensor)
+
 
 READERS: dict[str, Callable[..., Sequence]] = {
     "tum": TumRgbdSequence,
@@ -33,7 +46,7 @@ READERS: dict[str, Callable[..., Sequence]] = {
     "video": VideoSequence,
     "bag": BagSequence,
     "live": LiveSequence,  # a camera index, stream URL or video file (no layout to detect: kind="live" only)
-    # "synthetic": registered by the lead from vslam.data.synthetic (not imported here).
+    "synthetic": _synthetic,  # generated in memory from a SyntheticConfig dict (no path)
 }
 
 # (kind, predicate on the folder, what the predicate looks for -- quoted in the error).
@@ -80,3 +93,49 @@ def open_sequence(path: str | Path, kind: str = "auto", **options: Any) -> Seque
     except TypeError as exc:
         raise ConfigError(f"dataset kind {name!r}: {exc}") from None
     return reader(path, **options)
+
+
+def open_dataset(cfg: DatasetConfig) -> Sequence:
+    """The Sequence a DatasetConfig names (synthetic ones are generated lazily in memory)."""
+    if cfg.kind == "synthetic":
+        return open_sequence("", kind="synthetic", sensor=cfg.sensor, synthetic=dict(cfg.synthetic))
+    if cfg.kind == "live":  # frames as they come: nothing to select from, a queue that drops instead
+        if cfg.stride != 1 or cfg.drop:
+            raise ConfigError("dataset.stride and dataset.drop select frames of a recording; a live source has "
+                              "none to select (its queue drops the frames the tracker cannot take)")
+        return open_sequence(cfg.path, kind="live", camera=_data_path(cfg.camera), sensor=cfg.sensor,
+                             config=cfg.live)
+    if not cfg.path:
+        raise ConfigError("dataset.path is empty; give the sequence folder (or use kind: synthetic)")
+    path = Path(cfg.path).expanduser()
+    if not path.is_absolute() and not path.exists():
+        path = data_root() / path
+    layout = _layout(path)
+    kind = layout if cfg.kind == "auto" else cfg.kind
+    if layout is not None and kind != layout:
+        raise ConfigError(f"dataset.kind is {kind!r} but {path} has the {layout} layout; use a config for "
+                          f"{layout} (or --kind {layout} with --sensor)")
+    if kind is None and cfg.camera and path.is_dir():  # a plain image folder, its camera file given apart
+        kind = "images"
+    if kind is None:
+        kind = detect_kind(path)  # raises, naming what it looked for
+    options: dict[str, Any] = {"sensor": cfg.sensor}
+    if kind in ("tum", "euroc", "images", "bag"):  # KITTI frames are matched by index, not time
+        options["max_diff"] = cfg.max_diff
+    if kind in ("images", "video", "bag"):
+        options.update(camera=_data_path(cfg.camera), **({"topics": cfg.topics} if kind == "bag" else
+                                                          {"times": _data_path(cfg.times), "fps": cfg.fps}))
+    return open_sequence(path, kind=kind, **options)
+
+
+def _data_path(p: str) -> Path | None:
+    """A user-given file path (camera, times) as given, None when empty."""
+    return Path(p).expanduser() if p else None
+
+
+def _layout(path: Path) -> str | None:
+    """The dataset kind ``path``'s layout shows, None when it shows none."""
+    try:
+        return detect_kind(path)
+    except DatasetError:
+        return None

@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -107,6 +108,25 @@ class _Ref:
 
 def _gray(img: np.ndarray) -> np.ndarray:
     return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+
+
+class Odometry(Protocol):
+    """What the pipeline drives (``FrameToFrameOdometry``, ``vslam.tracking.slam.SlamTracker``): frames in order
+    through ``track``; at the end ``finish`` writes what it has beside the trajectory, ``final_poses`` gives the
+    frames' poses where the map moved after they were written (None: the online poses stand) and
+    ``final_map_ids`` the map each tracked map id ended in after merges. ``metric_scale``: the trajectory is in
+    metres (else it is scored with Sim3)."""
+
+    @property
+    def metric_scale(self) -> bool: ...
+
+    def track(self, frame: Frame) -> FrameEstimate: ...
+
+    def finish(self, out_dir: object) -> dict: ...
+
+    def final_poses(self, frame_indices: list[int]) -> np.ndarray | None: ...
+
+    def final_map_ids(self, map_ids: list[int]) -> list[int]: ...
 
 
 class FrameToFrameOdometry:
@@ -213,6 +233,13 @@ class FrameToFrameOdometry:
     def finish(self, out_dir: object) -> dict:
         """Nothing to write besides the per-frame trajectory (no map): the pipeline's common end-of-run hook."""
         return {}
+
+    def final_poses(self, frame_indices: list[int]) -> None:
+        """No map to move the poses after they were written: the online poses stand."""
+        return None
+
+    def final_map_ids(self, map_ids: list[int]) -> list[int]:
+        return list(map_ids)  # one map, never merged
 
     def track(self, frame: Frame) -> FrameEstimate:
         t0 = time.perf_counter()
