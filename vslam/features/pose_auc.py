@@ -160,7 +160,7 @@ def pose_benchmark(methods: dict[str, Method], root: Path, cfg: PoseBenchConfig 
 
 
 def standard_methods(n: int, names: tuple[str, ...]) -> dict[str, Method]:
-    """Methods by name: "orb", "sift" (OpenCV, grey), "alike-t" / "alike-s" / "alike-n" at full resolution,
+    """Methods by name: "orb", "sift" (OpenCV, grey), "convpoint" (int8), "alike-t" / "alike-s" / "alike-n" at full resolution,
     "<alike>@0.5" at half (the shipped weights, descriptors at the keypoints only)."""
     from vslam.errors import ConfigError
     from vslam.features.evaluate import orb_method, sift_method
@@ -175,13 +175,20 @@ def standard_methods(n: int, names: tuple[str, ...]) -> dict[str, Method]:
             out[name] = grey(orb_method(n))
         elif base == "sift":
             out[name] = grey(sift_method(n))
+        elif base == "convpoint":  # the shipped network trained here, int8 on the CPU as SLAM runs it
+            import torch
+
+            from vslam.features.convpoint import default_weights, load_convpoint
+            from vslam.features.evaluate import convpoint_method
+
+            out[name] = grey(convpoint_method(load_convpoint(default_weights(), int8=True), n, torch.device("cpu")))
         elif base in ("alike-t", "alike-s", "alike-n"):
             from vslam.features.alike import extract, load_alike
 
             model, s = load_alike(base), float(scale or 1.0)
             out[name] = (lambda model, s: lambda im: extract(model, im, n, s)[::2])(model, s)
         else:
-            raise ConfigError(f"pose bench: unknown method {name!r} (known: orb, sift, alike-t, alike-s, alike-n, "
+            raise ConfigError(f"pose bench: unknown method {name!r} (known: orb, sift, convpoint, alike-t, alike-s, alike-n, "
                               f"with @<scale> for the ALIKE ones)")
     return out
 
