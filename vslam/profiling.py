@@ -1,4 +1,4 @@
-"""``vslam run --profile``: where each frame's time goes, stage by stage, and the peak memory (issue 10).
+"""``vslam run --profile``: where each frame's time goes, stage by stage, and the peak memory (docs/speed.md).
 
 Read back from the run's ``stats.csv``, so a profile costs the run nothing extra and any finished run can be
 profiled again (``python -m vslam.profiling runs/x/stats.csv``). Per stage: the mean ms per frame (a stage that
@@ -74,10 +74,10 @@ def write_profile(stats_csv: str | Path, out: str | Path) -> dict[str, Any]:
 
 
 def line_ba_cost(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
-    """Issue 6: the back-end cost of lines. A SLAM run with lines (``config`` + ``overrides``) in which every
-    local BA that has lines is solved twice on the same window, first without its lines (its result discarded),
-    then with them; CPU time of the solving thread (``time.thread_time``: the front-end thread's work is not
-    counted). Two separate runs would compare different windows, keyframes and machine load; this compares
+    """Point + line features: the back-end cost of lines. A SLAM run with lines (``config`` + ``overrides``) in which
+    every local BA that has lines is solved twice on the same window, first without its lines (its result
+    discarded), then with them; CPU time of the solving thread (``time.thread_time``: the front-end thread's work
+    is not counted). Two separate runs would compare different windows, keyframes and machine load; this compares
     like with like. -> {bas, points_ms, lines_ms (means per BA), ratio (sum with / sum without), ate_rmse}."""
     import dataclasses
 

@@ -1,4 +1,4 @@
-"""Line landmarks in the SLAM map, and the line steps of tracking and local mapping (issue 6, seed 003 ch. 3).
+"""Line landmarks in the SLAM map, and the line steps of tracking and local mapping (seed 003 ch. 3).
 
 ``LineSlam`` is what ``SlamTracker`` calls when ``slam.lines.enabled``; everything line-specific lives
 here so the point-only path is untouched when it is off:
@@ -296,7 +296,7 @@ class LineSlam:
                        extrapolate: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """3-D lines of segments (S,4) (``raw`` pixels to sample depth, ``seg`` ideal ones) from depth sampled
         along them -> (ok (S,), L (S,6), ends (S,2,3)); not ok where the samples do not lie on one 3-D line (a
-        depth edge, missing depth). Batched over the segments (one keyframe's ~100 cost ~0.6 ms each in a loop)."""
+        depth edge, missing depth). Batched over the segments (one keyframe's ~100 were costly one by one in a loop)."""
         raw = np.asarray(raw, dtype=np.float64).reshape(-1, 4)
         seg = np.asarray(seg, dtype=np.float64).reshape(-1, 4)
         S = len(raw)

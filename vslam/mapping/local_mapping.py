@@ -39,10 +39,8 @@ class MappingConfig:
     cull_found_ratio: float = 0.25  # recent point found/visible below this -> removed
     cull_min_obs_mono: int = 2  # recent point seen by fewer keyframes after cull_age -> removed
     # RGB-D/stereo: ORB-SLAM2's rule is Observations() <= 3 with a stereo observation counting twice, i.e. a
-    # point seen by 2 keyframes survives; 3 keyframes (this field's old value) starved fast or relit
-    # sequences of points (2-loop lighting route: median 40 points per keyframe). Static room 0.0131 ->
-    # 0.0037 m, 2-loop lighting route 0.0826 -> 0.0304 m, TUM teddy 0.0045 -> 0.0042 m, loop room 0.0077 ->
-    # 0.0074 m.
+    # point seen by 2 keyframes survives; 3 keyframes starved fast or relit sequences of points, and 2 was
+    # better on every row tried (docs/tracking.md, "Local mapping").
     cull_min_obs_depth: int = 2
     cull_age: int = 2  # keyframes after creation when the observation count is checked
     fuse_neighbors: int = 6  # fuse new points into this many covisible keyframes (and back)
@@ -50,36 +48,33 @@ class MappingConfig:
     max_hamming: int = 50
     triangulate: Literal["mono", "all", "none"] = "mono"  # which sensors create points by two-view triangulation
     tri_neighbors: int = 5
-    # Points triangulated with less parallax carry a depth too uncertain to hold a monocular scale. KITTI 07
-    # mono ATE (n_features 1800 / 2000 / 2200, epipolar matching): 1.0 deg 0.355 / 0.311 / 0.314 m, 1.5 deg
-    # 0.248 / 0.293 / 0.275 m; 2.0 deg and above starve the map (tracking lost on the accelerating stretch).
+    # Points triangulated with less parallax carry a depth too uncertain to hold a monocular scale; more
+    # parallax starves the map (KITTI 07 mono sweep: docs/tracking.md, "Local mapping").
     tri_parallax_deg: float = 1.5
     tri_max_reproj_px: float = 2.0
     # How new points find their second view. "epipolar" (ORB-SLAM's SearchForTriangulation): candidates within
     # sqrt(tri_epipolar_chi2) x 1.2^octave px of the epipolar line, away from the epipole, best Hamming <
     # tri_ratio x second best; "mutual": global mutual nearest neighbours with a 0.75 ratio test (repetitive
-    # texture fails it, so fewer points are made). KITTI 07 mono, 1.0 deg parallax, 1800 / 2000 / 2200
-    # features: mutual 0.367 / 0.346 / 0.346 m, epipolar 0.355 / 0.311 / 0.314 m (ratio 0.6: 0.364 m at 2000).
+    # texture fails it, so fewer points are made). Epipolar was the more accurate on KITTI 07 mono
+    # (docs/tracking.md, "Local mapping").
     tri_matching: Literal["epipolar", "mutual"] = "epipolar"
     tri_epipolar_chi2: float = 3.84
     tri_ratio: float = 0.7
     max_new_points: int = 1000  # RGB-D/stereo points created per keyframe, closest first
     level_sigma: bool = False  # BA pixel sigma grows with the keypoint's pyramid level (scale^level)
     # Local BA needs the window tied to the fixed keyframes by enough shared points, else it floats on a few
-    # (synthetic loop room, RGB-D: 7 shared points let BA slide 3 keyframes by 14 cm, ATE 0.30 m). Below this
-    # count the oldest window keyframes are held fixed too, the new keyframe always stays free. Swept on the
-    # synthetic room / loop room (ATE m): 0 -> 0.019 / 0.297, 30 -> 0.019 / 0.064, 60 -> 0.026 / 0.064,
-    # 100 -> 0.026 / 0.045; 30 fixes the floating window without costing the plain room.
+    # (seen on the synthetic loop room, RGB-D). Below this count the oldest window keyframes are held fixed
+    # too, the new keyframe always stays free. 30 fixes the floating window without costing the plain room
+    # (sweep: docs/tracking.md, "Local mapping").
     ba_min_anchor_points: int = 30
     # Local BA in a second process (``vslam.backend.worker``) while tracking goes on, ORB-SLAM's LocalMapping
     # thread on a fixed schedule: the result is written back ``ba_lag_frames`` frames after its keyframe, or
     # when the next keyframe is wanted if that comes first (the keyframe decision is then taken again on the
     # adjusted map), so the same input still gives the same trajectory. The frames in between track against
-    # the map as it was. 0 = solve at once, in this process. At 10 (bench rows ``*-async``): TUM teddy 46.1 vs
-    # 51.9 ms/frame, ATE 0.0048 vs 0.0044 m -- and 43.3 vs 40.4 ms/frame (ATE 0.0046 m) since the front end runs
-    # on the second core (``SlamConfig.frontend_thread``); the stereo loop room 0.0342 vs 0.0201 m (stereo
-    # points need their BA before they are tracked: 0.0224 / 0.0272 m at lags 2 / 5); monocular KITTI is lost
-    # at long lags.
+    # the map as it was. 0 = solve at once, in this process: a lag cost accuracy everywhere (stereo points
+    # need their BA before they are tracked; monocular KITTI is lost at long lags) and, since the front end
+    # runs on the second core (``SlamConfig.frontend_thread``), no longer saves time (bench rows ``*-async``;
+    # docs/tracking.md, "BA lag").
     ba_lag_frames: int = 0
 
 
@@ -106,7 +101,7 @@ class LocalMapper:
         self.recent: list[int] = []  # point ids still on probation (culling)
         # visual-inertial mode (``vslam.tracking.vio.Vio``): adds its IMU chain to the BA window and solves it
         self.inertial = None
-        # line landmarks (``vslam.mapping.line_map.LineSlam``, issue 6) join local BA when set
+        # line landmarks (``vslam.mapping.line_map.LineSlam``) join local BA when set
         self.lines = None
         self.worker: BAWorker | None = None  # ba_lag_frames > 0: the process that solves local BA
         if cfg.ba and cfg.ba_lag_frames > 0:
@@ -359,8 +354,7 @@ class LocalMapper:
         order = np.lexsort((okf, opt))
         okf, opt, ouv, our, osg = okf[order], opt[order], ouv[order], our[order], osg[order]
         # ORB-SLAM weights a keypoint of pyramid level l by sigma = scale^l. Measured here it did not pay
-        # (TUM teddy 0.0074 vs 0.0065 m, KITTI 07 mono 0.393 vs 0.387 m; synthetic room 0.0173 vs 0.0189 m),
-        # so it is an option, off by default.
+        # (docs/tracking.md, "Local mapping"), so it is an option, off by default.
         problem = BAProblem({k: m.keyframes[k].T_world_cam for k in allk}, set(fixed),
                             {p: points[p].xyz for p in pts.tolist()}, okf, opt,
                             ouv.reshape(-1, 2), our.astype(np.float64),

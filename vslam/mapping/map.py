@@ -285,7 +285,7 @@ class Map:
         """(keyframe ids: ``kf_id`` + its most covisible, point ids they observe (sorted, unique, read-only)).
 
         Remembered while the map is unchanged (``revision``): point and line tracking ask for the same local
-        map on every frame between keyframes (~1 ms of covisibility counting each)."""
+        map on every frame between keyframes (covisibility counting each time)."""
         key = (self.revision, kf_id, max_keyframes, min_shared)
         if self._local_memo is not None and self._local_memo[0] == key:
             return list(self._local_memo[1]), self._local_memo[2]
@@ -307,7 +307,7 @@ class Map:
         if len(ids) == 0:
             return np.zeros((0, 3))
         points = self.points
-        # one concatenation of the (3,) rows: ~2x faster than np.array of the list, np.stack ~2.5x slower
+        # one concatenation of the (3,) rows: faster than np.array of the list or np.stack (docs/speed.md)
         return np.concatenate([points[i].xyz for i in np.asarray(ids).tolist()], dtype=np.float64).reshape(-1, 3)
 
     def descriptors(self, ids: np.ndarray) -> np.ndarray:
@@ -316,7 +316,7 @@ class Map:
             return np.array([])
         points = self.points
         rows = [points[i].descriptor for i in np.asarray(ids).tolist()]
-        return np.concatenate(rows).reshape(len(rows), -1)  # as np.array(rows), ~2x faster
+        return np.concatenate(rows).reshape(len(rows), -1)  # as np.array(rows), faster (docs/speed.md)
 
     def update_descriptor(self, pt_id: int) -> None:
         """Representative descriptor: the observation with the smallest median distance to the others (ORB-SLAM)."""

@@ -40,9 +40,9 @@ from vslam.tracking.slam import SlamTracker
 log = logging.getLogger(__name__)
 
 
-# status / uncertain / pose_std_*: see FrameEstimate (issue 3: faulty frames are kept and marked uncertain;
+# status / uncertain / pose_std_*: see FrameEstimate (faulty frames are kept and marked uncertain;
 # a frame whose timestamp does not increase gets status "duplicate_time" and no trajectory line). map_id: the
-# map the frame's pose is in (issue 38: a new map when tracking is lost; see ``vslam.tracking.atlas``).
+# map the frame's pose is in (a new map when tracking is lost; see ``vslam.tracking.atlas``).
 # ms_map_*: the local-mapping sub-stages, blank on frames that made no keyframe. n_lines / n_line_inliers:
 # segments detected / map lines kept by the pose refinement, blank without line features.
 # imu: "used" / "off" (visual-only: no usable IMU samples over this stretch, an IMU factor dropped as

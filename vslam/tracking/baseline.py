@@ -49,11 +49,11 @@ class FrameEstimate:
     n_features: int = 0
     n_matches: int = 0
     n_inliers: int = 0
-    # with line features (issue 6): segments detected, and map lines kept by the pose refinement; None without
+    # with line features (``slam.lines``): segments detected, and map lines kept by the pose refinement; None without
     n_lines: int | None = None
     n_line_inliers: int | None = None
     times_ms: dict[str, float] = field(default_factory=dict)
-    # What the pose is (issue 3, faults): "tracked", "relocalised" (measured after a loss), "no_depth"
+    # What the pose is (faulty frames are kept and marked): "tracked", "relocalised" (measured after a loss), "no_depth"
     # (RGB-D/stereo frame measured from 2-D matches only), "predicted" (constant velocity through a
     # failure), "uninitialised" (no map yet: placeholder pose), "new_map" (tracking was lost: a new map starts
     # at this frame, ``vslam.tracking.atlas``), "lost" (the old map was given up and no new one could start

@@ -1,4 +1,4 @@
-"""Dense geometric tracking for RGB-D frames where features are too few (issue 38: white walls, a floor).
+"""Dense geometric tracking for RGB-D frames where features are too few (white walls, a floor).
 
 When feature tracking fails, the frame's depth is registered against the reference keyframe's: multi-scale
 point-to-plane ICP (Chen & Medioni 1992) over a voxel pyramid, started from the motion model's prediction.
@@ -11,7 +11,8 @@ Open3D's ``registration_icp`` is not repeatable (threaded reductions: 8 calls on
 results, 1e-14 apart) and the tracker promises the same poses for the same input; and because its
 ``get_information_matrix_from_point_clouds`` is the point-to-point information, full rank even for one plane.
 Coloured ICP (Park et al. 2017) is not used: on the corridor its image term did not hold the axis the
-geometry leaves free, and Open3D's recomputes the reference's colour gradients on every call (~130 ms).
+geometry leaves free, and Open3D's recomputes the reference's colour gradients on every call (its cost:
+docs/tracking.md, "Dense tracking").
 
 Clouds come from a subsampled depth image (about ``cloud_width`` columns); normals from the depth grid. The
 reference keyframe's pyramid is built on its first use only: most keyframes are never needed here.
@@ -46,15 +47,15 @@ class DenseConfig:
     min_depth: float = 0.2  # metres; depth outside [min, max] is not used
     max_depth: float = 8.0  # beyond, consumer depth sensors are too noisy and sparse
     min_points: int = 500  # valid subsampled depth pixels needed in the frame (and the reference)
-    # metres, coarse to fine; the finest ~ the sample spacing at 3 m. (0.16, 0.08, 0.04) with (10, 8, 6)
-    # steps: median error 0.21 vs 0.27 mm on 28 synthetic pairs, for ~35 % more time
+    # metres, coarse to fine; the finest ~ the sample spacing at 3 m. A finer pyramid with more steps gained
+    # little accuracy for much more time (docs/tracking.md, "Dense tracking")
     voxel_sizes: tuple[float, ...] = (0.2, 0.1, 0.05)
     # correspondence gates, one per level: the coarsest covers the motion model's error after a second or
     # so without features (10-20 cm), the finest sub-voxel misalignment
     max_correspondence: tuple[float, ...] = (0.3, 0.15, 0.075)
     iterations: tuple[int, ...] = (6, 5, 4)  # Gauss-Newton steps per level (fewer when a step is < 1e-6)
-    # share of the frame's points with a reference point within the finest gate (and 3 robust sigmas). 0.5
-    # accepted TUM teddy pairs 4-15 cm off the ground truth, where 0.6 refused them
+    # share of the frame's points with a reference point within the finest gate (and 3 robust sigmas). A lower
+    # share accepted wrong TUM teddy pairs (docs/tracking.md, "Dense tracking")
     min_fitness: float = 0.6
     # below this share the frame becomes the reference (and a keyframe where its keypoints have depth): on a
     # long stretch without features the reference would otherwise fall behind until min_fitness refuses
@@ -62,17 +63,15 @@ class DenseConfig:
     max_rmse: float = 0.015  # metres, point-to-plane RMS of those correspondences (a Kinect's noise at ~2 m)
     # Degeneracy (Gelfand et al. 2003, "Geometrically stable sampling for the ICP algorithm"): the smallest
     # eigenvalue of the point-to-plane information per correspondence, rotations scaled by the mean point
-    # distance; 0 for one plane or a corridor seen along its axis. Of 54 synthetic pairs (room, corridor with
-    # and without its end wall in range), the 30 at >= 0.001 were within 2.3 mm of the truth; below, errors
-    # reached 0.1-1.2 m.
+    # distance; 0 for one plane or a corridor seen along its axis. The threshold separates the synthetic pairs
+    # ICP measured well from those it did not (docs/tracking.md, "Dense tracking").
     min_constraint: float = 0.001
     # per-point depth noise for the covariance (the measured residual RMS when larger). Neighbouring points'
     # errors are correlated, so the covariance is a lower bound, like the feature tracker's.
     depth_sigma: float = 0.005
     # The relative pose of a keyframe made from a dense frame enters BA (``Map.links``) with the ICP covariance
     # plus these variances: the covariance above assumes independent points, and on real pairs it is far too
-    # small (TUM teddy pairs 2-5 frames apart, 14 accepted: median error 0.9 deg / 19 mm against the ground
-    # truth where it predicted 0.04 deg / 2 mm; depth-to-colour timing and rolling shutter are not in it).
+    # small (docs/tracking.md, "Dense tracking"; depth-to-colour timing and rolling shutter are not in it).
     link_sigma_deg: float = 1.0
     link_sigma_m: float = 0.02
 

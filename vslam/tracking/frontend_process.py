@@ -2,10 +2,10 @@
 depth, detector boxes) -- in a child process, up to ``ahead`` frames ahead of tracking.
 
 Why not only the prefetch thread (``SlamConfig.frontend_thread``): on TUM teddy (2 cores) the tracking thread
-spends ~11 ms on a frame and ~80 ms on a keyframe (local BA), the front end ~20 ms on every frame (PNG decode
-10 + ORB 8). Balanced over a keyframe's ~7 frames -- if the front end could work ahead through each BA. A
-thread cannot: GTSAM's optimiser holds the GIL (~30 ms per LM round), and its queue was 3 frames. Each frame
-after a BA then waited ~10 ms for the front end (stats.csv ms_decode; docs/speed.md). A process has its own GIL.
+is quick on a frame and slow on a keyframe (local BA), the front end (PNG decode + ORB) costs the same on every
+frame; the two balance over a keyframe's frames -- if the front end could work ahead through each BA. A thread
+cannot: GTSAM's optimiser holds the GIL through each LM round, and the thread's queue was short. Each frame after
+a BA then waited for the front end (stats.csv ms_decode; the timings in docs/speed.md). A process has its own GIL.
 
 How the frames travel: a TUM frame pickles to ~2.2 MB (colour + float depth), which through a pipe needs the
 reader's GIL dozens of times per frame -- a reader thread beside GTSAM starved, and the child blocked on the
@@ -19,10 +19,10 @@ same frames, so the numbers are those of the thread, bit for bit; it reads the s
 is pickled to it). Its log records (a frame that does not decode) go to this process's loggers.
 
 Inside the child the sequence is read (decoded, rendered) on one thread and the front ends are made on
-``SlamConfig.frontend_workers`` others, each with a tracker of its own; the frames go out in order. Why: on
-EuRoC stereo (2 cores) tracking needs ~17 ms a frame and the front end ~60 (two PNGs, two ORB passes, the
-stereo match), so one core idled while tracking waited; the front end of a frame depends on its images alone,
-so two frames can be made at once (OpenCV and numpy release the GIL) with the same numbers.
+``SlamConfig.frontend_workers`` others, each with a tracker of its own; the frames go out in order. Why: on EuRoC
+stereo (2 cores) the front end (two PNGs, two ORB passes, the stereo match) takes several times what tracking
+takes a frame (docs/speed.md), so one core idled while tracking waited; the front end of a frame depends on its
+images alone, so two frames can be made at once (OpenCV and numpy release the GIL) with the same numbers.
 """
 
 from __future__ import annotations
@@ -240,8 +240,8 @@ class _ForwardLogs(logging.Handler):
 def frame_workers(cfg: SlamConfig, sensor: SensorKind, ahead: int) -> int:
     """How many frames the child makes at once: ``SlamConfig.frontend_workers``, or for 0 two for stereo without a
     network when the process may use two CPUs, else one. Stereo: two ORB passes and the stereo match make the
-    front end heavier than tracking (EuRoC ~60 vs ~17 ms); an RGB-D or monocular one keeps ahead alone (TUM ~25
-    vs ~55), and a network already spreads over the cores with torch's threads. Never more than ``ahead``, the
+    front end heavier than tracking (EuRoC); an RGB-D or monocular one keeps ahead alone (TUM; timings in
+    docs/speed.md), and a network already spreads over the cores with torch's threads. Never more than ``ahead``, the
     frames the child may hold."""
     n = cfg.frontend_workers
     if n <= 0:

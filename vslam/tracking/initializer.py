@@ -11,11 +11,10 @@ initialisation costs a few frames, a wrong one corrupts the whole map.
 
 Both robust fits use OpenCV's USAC (MAGSAC++ scoring, local optimisation, final polishing) with
 the RNG state taken from ``cfg.seed``, so results are deterministic without touching global RNG
-state. Measured on 500 matches with 20 % outliers (2-core machine): E 1.3 ms, H 2 ms, scoring
-0.4 ms, motion selection 2 ms, whole call 6 ms. pycolmap's LO-RANSAC E needs 5 ms with tuned trial
-counts and was no more accurate here (DEPENDENCIES.md §2), so OpenCV is used. ORB-SLAM runs the two
-fits in two threads; here they run one after the other because a thread pool measured 0.5-1.5 ms
-slower than sequential calls at these sizes.
+state. pycolmap's LO-RANSAC E was slower with tuned trial counts and no more accurate here
+(DEPENDENCIES.md §2), so OpenCV is used. ORB-SLAM runs the two fits in two threads; here they run one
+after the other because a thread pool measured slower than sequential calls at these sizes (timings in
+docs/tracking.md, "Monocular initialisation").
 
 Frames: ``T_cur_ref`` maps reference-camera points into the current camera,
 ``p_cur = T_cur_ref @ p_ref``; the reference camera is the map's world frame at initialisation.

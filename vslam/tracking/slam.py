@@ -58,10 +58,10 @@ class SlamConfig:
     localize_only: bool = False  # with load_map: track against the saved map, never add keyframes
     save_map: bool = False  # finish() also writes map.vslam.npz (keyframes, points, place descriptors)
     inertial: VioConfig = field(default_factory=VioConfig)  # visual-inertial mode (vslam.tracking.vio), off by default
-    lines: LineConfig = field(default_factory=LineConfig)  # point + Plücker-line features (issue 6), off by default
-    dynamic: DynamicConfig = field(default_factory=DynamicConfig)  # dynamic-object filtering (issue 5), off by default
-    dense: DenseConfig = field(default_factory=DenseConfig)  # RGB-D: depth ICP where features fail (issue 38, vslam.tracking.dense)
-    # tracking lost: a new map, and maps merged where they meet (issue 38; ``vslam.tracking.atlas``)
+    lines: LineConfig = field(default_factory=LineConfig)  # point + Plücker-line features, off by default
+    dynamic: DynamicConfig = field(default_factory=DynamicConfig)  # dynamic-object filtering, off by default
+    dense: DenseConfig = field(default_factory=DenseConfig)  # RGB-D: depth ICP where features fail (tracking.dense)
+    # tracking lost: a new map, and maps merged where they meet (``vslam.tracking.atlas``)
     atlas: AtlasConfig = field(default_factory=AtlasConfig)
     # Keypoints, line segments, keypoint depth and detector boxes depend on the image alone: ``vslam run``
     # computes them for the next frames on its prefetch thread while this one is tracked (OpenCV / torch release
@@ -70,26 +70,26 @@ class SlamConfig:
     # With frontend_thread: decode the frames and run that front end in a child process instead of a thread
     # (``vslam.tracking.frontend_process``: GTSAM's BA holds the GIL, and a thread cannot work ahead through it).
     # The same numbers bit for bit; faster where the front end is what tracking waits for (TUM teddy ORB-only, the
-    # learned pipeline). The child's start (~0.5 s) counts too: on short subsets it costs more than it saves
+    # learned pipeline). The child's start counts too: on short subsets it costs more than it saves
     # (docs/speed.md). A sequence that cannot be pickled to the
     # child runs on the thread.
     frontend_process: bool = True
     # With frontend_process: frames whose front end the child makes at once, a thread and a tracker each, while
     # another thread reads the sequence. A frame's front end depends on its images alone, so the numbers are the
-    # same for any count. Where tracking is light the front end is what it waits for (EuRoC stereo: ~17 vs ~60 ms
-    # a frame on 2 cores), and one frame at a time left a core idle. 0 = 2 for stereo without a network where the
-    # process may use 2+ CPUs, else 1 (an RGB-D front end keeps ahead alone: TUM ~25 vs ~55 ms; torch's threads
-    # already spread a network over the cores); ``frontend_process.frame_workers``.
+    # same for any count. Where tracking is light the front end is what it waits for (EuRoC stereo), and one
+    # frame at a time left a core idle. 0 = 2 for stereo without a network where the process may use 2+ CPUs,
+    # else 1 (an RGB-D front end keeps ahead alone; torch's threads already spread a network over the cores);
+    # ``frontend_process.frame_workers``; timings in docs/speed.md.
     frontend_workers: int = 0
-    # LSD segments on a thread of their own, beside the networks: on a GPU ConvPoint and the detector take ~5 ms
-    # each and LSD (CPU) ~19 ms (bench row network-speed-gpu), so in a row the front end costs their sum, side by
-    # side the longest. None = when the keypoint network runs on CUDA (the 2-core CPU target has no core to
+    # LSD segments on a thread of their own, beside the networks: on a GPU LSD (CPU) takes longer than
+    # ConvPoint or the detector (docs/speed.md), so in a row the front end costs their sum, side by side the
+    # longest. None = when the keypoint network runs on CUDA (the 2-core CPU target has no core to
     # spare); the same segments either way.
     lines_beside_networks: bool | None = None
     # Intra-op threads of the networks (torch) while ``Pipeline.run`` lasts; 0 = the CPUs this process may use,
     # less one for the tracking thread when the front end has its own. torch's default (every core) put three
     # busy threads on the 2-core VM and slowed the learned pipeline (docs/speed.md).
-    # The thread count changes float summation order, hence trajectories a little (ATE 0.0174 vs 0.0175 m there).
+    # The thread count changes float summation order, hence trajectories a little (docs/speed.md).
     torch_threads: int = 0
     # numpy's BLAS (OpenBLAS) threads while ``Pipeline.run`` lasts (and in the BA worker process); 0 = its default
     # (every core). Its matrices here are small (BA windows, batched 4x4 line solves): a second OpenBLAS thread
@@ -288,8 +288,8 @@ class SlamTracker:
                 # The previous keyframe's BA lands first and the decision is taken again on the adjusted map:
                 # decided on the stale one (its outlier observations still counted), keyframes came every
                 # frame (TUM teddy, BA written back only at the next keyframe: tracking lost), and holding
-                # keyframes back while BA runs (ORB-SLAM's "mapping busy") cost accuracy (TUM teddy 0.0044 ->
-                # 0.0051 m with an 8-frame lag, KITTI 07 mono 0.293 -> 0.359 m with 5).
+                # keyframes back while BA runs (ORB-SLAM's "mapping busy") cost accuracy (docs/tracking.md,
+                # "BA lag").
                 ms_map = _add_ms(ms_map, self._flush_mapping())
                 want = self._want_keyframe(frame, res.n_inliers, res.point_ids, depth, res.method) or stage_kf
             if want:
@@ -665,7 +665,7 @@ def _add_ms(a: dict[str, float], b: dict[str, float]) -> dict[str, float]:
 
 def write_map_ply(path: Path, xyz: np.ndarray) -> Path:
     """(N,3) world points -> binary PLY point cloud (x, y, z doubles), the layout open3d writes. Written here, not
-    by open3d: importing it for this costs ~160 MB of resident memory at the end of every run (issue 41)."""
+    by open3d: importing it for this costs resident memory at the end of every run (docs/speed.md)."""
     from vslam.outputs import atomic_open
 
     xyz = np.ascontiguousarray(xyz, dtype="<f8").reshape(-1, 3)

@@ -61,20 +61,19 @@ class TrackingConfig:
     kf_ratio_mono: float = 0.9  # monocular (ORB-SLAM's thRefRatio values)
     kf_max_frames: int = 30  # ... or this many frames since the last one
     kf_min_frames_mono: int = 3  # monocular: at least this many frames apart (stands in for ORB-SLAM's "mapping busy")
-    # ... unless fewer inliers than this are left: KITTI 07 (10 Hz, accelerating to 7 m/s) fell from ~200 to
-    # 25 inliers within 3 frames around frame 45 and was lost with kf_min_frames_mono = 3.
+    # ... unless fewer inliers than this are left: under fast acceleration (KITTI 07) the inliers ran out
+    # within kf_min_frames_mono frames and tracking was lost (docs/tracking.md).
     kf_min_inliers_mono: int = 60
     kf_close_tracked: int = 100  # RGB-D/stereo: ... or fewer close points tracked than this
     kf_close_untracked: int = 70  # ... while this many close keypoints are not in the map
     # Stereo: the close-point rule at 200. Only about half the keypoints get a stereo depth, so at 100 the
-    # rule fired late and keyframes were 15-20 frames apart on the synthetic loop room (ATE 0.079 m, 20
-    # keyframes; 200: 0.022 m, 47 keyframes; static room 0.0131 -> 0.0089 m). RGB-D at 200: TUM teddy
-    # 0.0045 -> 0.0040 m but 12.6 -> 3.9 frames/s, static room 0.0131 -> 0.0168 m, so it stays at 100 there.
+    # rule fired late and keyframes came too far apart. RGB-D at 200 was much slower and not better
+    # everywhere, so it stays at 100 there (docs/tracking.md).
     kf_close_tracked_stereo: int = 200
     # RGB-D/stereo: ... or fewer inliers than this. The ratio rule alone waits too long under fast forward
     # motion (synthetic street, 17 cm/frame, few points closer than close_baselines): the fresh points of the
-    # reference keyframe are not yet seen by min_obs keyframes, so it never fires and tracking runs dry (lost
-    # at frame 47 of 300 with 7 keyframes).
+    # reference keyframe are not yet seen by min_obs keyframes, so it never fires and tracking runs dry
+    # (docs/tracking.md).
     kf_min_inliers: int = 100
     close_baselines: float = 40.0  # "close" = depth < close_baselines x baseline (ORB-SLAM thDepth)
     min_depth_points: int = 50  # RGB-D/stereo: keypoints with depth needed to start the map / make a keyframe
@@ -135,7 +134,7 @@ class Tracker:
         """RANSAC absolute pose from ideal pixels (M,2) and world points (M,3) -> (T_world_cam | None, inliers (M,))."""
         if len(uv) < max(6, self.cfg.min_inliers):
             return None, np.zeros(len(uv), bool)
-        # LO-RANSAC alone, no Ceres refinement after it (~4 of its ~6 ms per frame on TUM teddy): every caller
+        # LO-RANSAC alone, no Ceres refinement after it (most of its time per frame): every caller
         # refines the pose next with the numpy pose-only optimiser (``refine``, ``track_projection``). With no
         # refinement at all before the second round most rows were as good or better but the stereo loop room got
         # worse, hence the round in ``track_projection`` (docs/tracking.md).
@@ -151,7 +150,7 @@ class Tracker:
         -> (T_world_cam, inliers (M,))."""
         X = self.map.points_xyz(pids) if X is None else X
         # Unlike BA, pose-only refinement uses one sigma for all levels: per-level sigmas measured worse
-        # here (synthetic room RGB-D: ATE 0.063 vs 0.017 m), the chi2 gate then lets coarse outliers in.
+        # here (docs/tracking.md), the chi2 gate then lets coarse outliers in.
         return optimize_pose(T, X, feats.uv[kps], ur[kps], self.stereo_cam, self.backend)
 
     def search_local(self, T: np.ndarray, local: LocalPoints, feats: Features, tree: cKDTree, radius: float,
@@ -213,12 +212,12 @@ class Tracker:
             return TrackResult(T, False, np.full(len(feats), -1, np.int64), len(mp), 0, method)
         T2, inl = self.refine(T, mp, mk, ur, feats, X)
         points = self.map.points
-        for pid in local.ids[vis].tolist():  # Python ints: ~2x faster dict lookups than numpy scalars
+        for pid in local.ids[vis].tolist():  # Python ints: faster dict lookups than numpy scalars
             points[pid].n_visible += 1
         for pid in mp[inl].tolist():
             points[pid].n_found += 1
         res = self._result(T2, mp, mk, inl, len(feats), method, len(mp))
-        if res.ok:  # issue 3: every measured pose says how uncertain it is (~0.1 ms)
+        if res.ok:  # every measured pose says how uncertain it is (cheap: docs/tracking.md)
             res.cov = pose_covariance(T2, X[inl], feats.uv[mk[inl]], ur[mk[inl]], self.stereo_cam, self.backend)
         return res
 
@@ -250,14 +249,14 @@ class Tracker:
             # The pose moved the local map farther than the search radius from where the prediction put it: the
             # true matches of most points lay outside their windows, and those found are where the prediction
             # happened to be close (one image region, one depth), a subset that may pin the pose badly and that the
-            # tight second round cannot leave (TUM teddy every 15th frame: background points 4-6 m away only, the
-            # pose 10 cm off). The reference keyframe's descriptor matches do not depend on the prediction.
+            # tight second round cannot leave (seen on TUM teddy: docs/tracking.md). The reference keyframe's
+            # descriptor matches do not depend on the prediction.
             ref = self.track_keyframe(feats, ur, ref_kf, tree)
             if ref is not None and ref.ok:
                 return ref
-        # One least-squares round on the RANSAC inliers (~1 ms) before the tight second-round search: the
-        # LO-RANSAC pose alone put the stereo loop room at 0.0248-0.0273 m (RANSAC seeds 0-2) against 0.0200-0.0201 m
-        # with pycolmap's Ceres refinement (~4 ms a frame) and 0.0203 / 0.0206 m with this round (TUM 0.0041 m).
+        # One cheap least-squares round on the RANSAC inliers before the tight second-round search: the
+        # LO-RANSAC pose alone cost the stereo loop room accuracy that this round gives back as well as pycolmap's
+        # Ceres refinement did, for a fraction of its time (docs/tracking.md).
         T, _ = optimize_pose(T, X[inl], feats.uv[mk[inl]], ur[mk[inl]], self.stereo_cam, self._one_round)
         res = self._finish_local(T, feats, ur, ref_kf, tree, "projection", local)  # the map has not changed since
         res.tried_reference = far

@@ -22,7 +22,7 @@ Prediction: once initialised, a frame's pose prior is the IMU propagation of the
 constant-velocity model. A frame vision cannot track (blackout, too few inliers) keeps the predicted pose
 and velocity, so the trajectory follows the IMU until tracking recovers around the predicted pose.
 
-IMU data is checked before it is believed (issue 39). Each sample passes the gate of ``vslam.inertial.gate``
+IMU data is checked before it is believed. Each sample passes the gate of ``vslam.inertial.gate``
 (sensor range, Hampel spike test) or is left out, and counted; ``finish`` warns once with the count and the first
 rejected file line. A frame whose interval the accepted samples do not cover (a hole over
 ``imu.max_gap_s``, samples ending before the images, all rejected) turns the inertial side off: no IMU prediction
@@ -35,7 +35,7 @@ of the initialisation. ``imu_state`` says "used" or "off" per frame (``FrameEsti
 Why the mono-inertial settings (alignment keyframes >= 0.3 s apart, a 2 deg initial parallax and a
 20-keyframe IMU chain, preset synthetic_vio_mono): alignments solved on keyframes 0.1 s apart let their
 position noise shrink the scale (``vi_align(min_dt_s=)``), and a small two-view start read its rotation
-error as gyro bias. The price is local BA time (~3x per keyframe: the IMU chain adds keyframes to the window).
+error as gyro bias. The price is local BA time per keyframe (the IMU chain adds keyframes to the window).
 Measurements: docs/inertial.md.
 """
 

@@ -1,4 +1,4 @@
-"""A run as a Rerun recording (issue 42, "watch it live"): ``RerunLogger.log_frame`` once per frame.
+"""A run as a Rerun recording (watch it live, docs/viewer.md): ``RerunLogger.log_frame`` once per frame.
 
 Entity tree (docs/viewer.md), world = the map's frame (the first camera, OpenCV axes: x right, y down, z ahead):
 
@@ -223,7 +223,7 @@ class RerunLogger:
         rr, rec, img = self.rr, self.rec, frame.image
         if self.cfg.jpeg_quality > 0:
             _, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, self.cfg.jpeg_quality])
-            # a uint8 array, not bytes: rerun converts bytes element by element (~10 ms for a VGA JPEG, 0.2 here)
+            # a uint8 array, not bytes: rerun converts bytes element by element (docs/speed.md)
             rec.log("world/camera/image", rr.EncodedImage(contents=buf.reshape(-1), media_type="image/jpeg"))
         else:
             rec.log("world/camera/image", rr.Image(img, color_model="BGR" if img.ndim == 3 else "L"))
