@@ -15,21 +15,21 @@ Local BA (``local_bundle_adjustment``), after ORB-SLAM2 ``Optimizer::LocalBundle
    returned unchanged. A point whose only valid observation is stereo-like (three residuals on its three
    unknowns) carries no information about any pose: it gets no factor either and is set, after the poses,
    to its measurement back-projected from its keyframe (zero residual, the exact minimum), unless that
-   keyframe is weakly tied to the window (``BackendConfig.closed_form_min_tied``). On TUM teddy
-   that is ~45 % of the window's points (new RGB-D points of the newest keyframe); BA ms per keyframe 0.61x,
-   the poses the same up to LM damping.
+   keyframe is weakly tied to the window (``BackendConfig.closed_form_min_tied``). On RGB-D these are
+   many of the window's points (new points of the newest keyframe), so BA gets much cheaper, the poses the
+   same up to LM damping (docs/backend.md, "Local BA timings").
 2. *Build*: keys ``X(kf_id)`` (Pose3 = T_world_cam) and ``L(point_id)``; one ``GenericStereoFactor3D``
    (finite ur and baseline > 0) or ``GenericProjectionFactorCal3_S2`` per observation, isotropic
    ``pixel_sigma`` (or ``BAProblem.obs_sigma``) inside a Huber model. Fixed keyframes are held by a
-   PriorFactorPose3 of sigma 1e-6 (NonlinearEqualityPose3 gives the same result but is up to 3.5x slower, see
+   PriorFactorPose3 of sigma 1e-6 (NonlinearEqualityPose3 gives the same result but is slower, see
    ``factors.py``). If no observed keyframe is fixed, the one with the lowest id is held instead (gauge:
    6 DOF; for mono-only windows the scale then stays free, only held near the initial guess by LM damping --
    pass at least two fixed keyframes for mono).
-   With ``BAProblem.lines`` (issue 6) the window's line observations join both LM rounds as one
+   With ``BAProblem.lines`` (line features) the window's line observations join both LM rounds as one
    structureless factor (``line_ba`` / ``line_window``); ``BAResult.lines`` / ``line_inliers`` come back.
 3. *Optimise*: Levenberg-Marquardt, ``max_iterations`` (lambda settings in ``factors.lm_params``). With
    ``BackendConfig.solver = "numpy"`` steps 2-5 run on the same cost in ``vslam.backend.schur`` instead of a
-   GTSAM graph (same estimate to the LM tolerance, ~0.5x the time on TUM windows).
+   GTSAM graph (same estimate to the LM tolerance, in less time: docs/backend.md).
 4. *Classify*: chi2 test on each observation's unrobust whitened squared error (chi2_mono / chi2_stereo).
 5. *Refine*: the outlier factors are dropped and LM runs ``refine_iterations`` more (ORB-SLAM2: 10) from
    the first-round estimate; variables left with no factor keep their first-round value. The Huber kernel
@@ -44,25 +44,12 @@ returned unchanged); fixed keyframes are left out -- the caller's copies are the
 the final estimate (the same graph, so they compare). ``iterations``: LM iterations of both rounds.
 ``ms``: build, optimize (both LM rounds), classify (both), total. The closed-form points are in neither error.
 
-Measured with ``python -m tests.backend.bench_ba`` on the project machine (2-core Xeon, BLAS/OpenMP one
-thread, machine shared with other jobs, load ~3; medians of 7). Synthetic data: 50 % stereo, 0.5 px noise,
-5 % outliers of 30 px, 2 fixed keyframes, start 2 cm / 1 deg / 5 cm off.
+Timings: ``python -m tests.backend.bench_ba``, results in docs/backend.md ("Local BA timings"). A GTSAM LM
+iteration is dominated by elimination, GTSAM's per-clique overhead over many tiny point cliques, and the
+Python-side build pays per factor.
 
-===============================================================================  ==========================
-local BA, window 10 kf x 300 obs, 2 views per point (3000 obs, 1500 pts)         ~240 ms (build 14,
-                                                                                 optimize 220 = 15 LM
-                                                                                 iterations, classify 5)
-local BA, window 10 kf x 300 obs, 4 views per point (3000 obs, 750 pts)          ~170 ms
-local BA, 6 kf x 200 pts, every point in every keyframe (1200 obs)               ~60 ms
-pose-only (numpy, ``optimize_pose``), 300 / 500 pts, 20 % outliers, 4 rounds     1.95 / 2.2 ms
-pose-only as a GTSAM graph (points held by priors), same data and pose           24 / 39 ms
-===============================================================================  ==========================
-
-A GTSAM LM iteration costs ~15 ms for 3000 observations (linearise ~2 ms, eliminate ~10 ms: GTSAM's
-per-clique overhead over 1500 tiny point cliques); the Python-side build is ~5 us per factor.
-
-Why a window and not iSAM2: on a growing stereo map, iSAM2 over the whole history was ~1 mm more accurate
-than windowed LM at 3.3x the time per keyframe, and its time grows with the map
+Why a window and not iSAM2: on a growing stereo map, iSAM2 over the whole history was slightly more accurate
+than windowed LM at several times the time per keyframe, and its time grows with the map
 (``python -m tests.backend.bench_solvers --kf 30``; numbers in docs/backend.md). So local mapping uses the
 window; loop closing adds the global optimisation (``vslam.loop``).
 """
@@ -97,46 +84,41 @@ class BackendConfig:
     huber_k: float = 1.345  # Huber threshold in sigmas (robust loss on every visual factor)
     chi2_mono: float = 5.991  # 95 % of chi2(2): an observation above this after BA is an outlier
     chi2_stereo: float = 7.815  # 95 % of chi2(3)
-    # LM iterations of local BA. Each keyframe's BA starts from tracked poses, so few are needed: 6 + 3
-    # instead of 10 + 5 measured TUM teddy 0.0060 vs 0.0065 m, KITTI 07 mono 0.379 vs 0.387 m, synthetic room
-    # and EuRoC unchanged, mapping time per frame ~15 % lower. 4 + 2 instead of 6 + 3 (the robust cost is
-    # within 0.3 % of its 6-iteration value after 2): BA ms per keyframe -25..-35 %, ATE (m) TUM teddy 0.0044
-    # both, KITTI 07 mono 0.2929 -> 0.2924, static room 0.0037 both, loop room 0.0074 both, 2-loop lighting
-    # route 0.0304 -> 0.0293 (mono 0.0390 -> 0.0296), corridor 0.0051 both, stereo: loop room 0.0198 -> 0.0201,
-    # street 0.0373 -> 0.0324, corridor 0.0123 -> 0.0114.
+    # LM iterations of local BA. Each keyframe's BA starts from tracked poses, so few are needed: fewer
+    # iterations (4 + 2) kept the ATE of the bench rows and cut BA time per keyframe (docs/backend.md, "BA
+    # settings").
     max_iterations: int = 4
     rgbd_virtual_baseline: float = 0.08  # metres; RGB-D depth as a virtual stereo pair (ORB-SLAM2 uses bf/fx ~ 0.08)
     # RGB-D: std (px) of the virtual disparity fx*b/z, independent of the keypoint's own pixel noise.
     # ORB-SLAM2 gives uR the keypoint's sigma (1 px) as if it were a second keypoint: with b = 0.08 that is a
     # depth std of ~5 % at 2 m, far above a depth sensor (Kinect: sigma_z ~ 1.4e-3 z^2, i.e. a constant
     # ~0.06 px of this disparity), and local BA then trades depth for the rotation/translation ambiguity:
-    # on the synthetic loop room every keyframe BA *added* rotation error (+0.1..1.4 deg per BA, the same
-    # minimum when started from the true poses). 0 = the ORB-SLAM2 model. Swept in ``vslam bench`` rows.
+    # on the synthetic loop room every keyframe BA *added* rotation error (docs/backend.md, "BA settings").
+    # 0 = the ORB-SLAM2 model. Swept in ``vslam bench`` rows.
     rgbd_disparity_sigma: float = 0.1
     # Rectified stereo with sub-pixel refinement (``vslam.features.stereo``): the disparity is measured against
     # the left keypoint, so the RGB-D model applies in principle. 0 (uR as an independent keypoint, as for the
-    # unrectified EuRoC rig) measured better: synthetic static room 0.0089 vs 0.0158 m at 0.3 px, loop room
-    # 0.0217 vs 0.0239 m (its error grows with the pyramid level, which one sigma does not model).
+    # unrectified EuRoC rig) measured better (docs/backend.md, "BA settings"; its error grows with the pyramid
+    # level, which one sigma does not model).
     stereo_disparity_sigma: float = 0.0
     # RGB-D: an observation that fails the stereo chi2 test but passes the mono one on its pixel alone keeps
-    # its match as a mono observation (its depth is dropped) instead of losing it. TUM teddy 0.0045 -> 0.0041 m
-    # but 16.6 -> 10.1 frames/s (37 -> 49 keyframes); the synthetic rows (exact depth) do not change. Off.
+    # its match as a mono observation (its depth is dropped) instead of losing it. Slightly more accurate on
+    # TUM teddy but much slower (more keyframes); the synthetic rows (exact depth) do not change. Off
+    # (docs/backend.md, "BA settings").
     rgbd_depth_outliers_as_mono: bool = False
     refine_iterations: int = 2  # LM iterations of local BA's second round, outliers removed (ORB-SLAM2: 10)
     # Single-view stereo points are solved in closed form (module docstring, step 1) only in keyframes with at
     # least this many observations of points another keyframe of the window sees. A keyframe tied to the window
-    # by fewer is barely determined by it (synthetic tight loop, 320x240: a new keyframe saw 27 old points, all
-    # in one 20 px column, and the optimum moved it 26 cm for a 0.06 % lower cost); there its single-view
-    # points' factors stay in the graph, where LM's damping of the points holds the pose near its tracked
-    # value, as before this shortcut. 60-frame tight loop, ATE at 0 / 50 / 100: 0.062 / 0.031 / 0.031 m (seed 1:
-    # 0.177 / 0.110 / 0.110 m); TUM teddy BA time the same at 0 and 50.
+    # by fewer is barely determined by it (seen on the synthetic tight loop: docs/backend.md, "BA settings");
+    # there its single-view points' factors stay in the graph, where LM's damping of the points holds the pose
+    # near its tracked value, as before this shortcut.
     closed_form_min_tied: int = 50
     # Local BA's solver: "numpy" (``vslam.backend.schur``: points eliminated by a dense Schur complement over the
     # window's free poses) or "gtsam" (the factor graph of ``factors``); the same cost and LM settings, the same
     # estimates to the LM tolerance per window. Windows with line landmarks or more than NUMPY_MAX_POSES keyframes
     # (global BA), and visual-inertial windows, go to GTSAM either way. numpy by default: about half of GTSAM's
-    # CPU per window (GTSAM pays per factor built from Python and per point clique eliminated), with the same
-    # ATE within 5 % on the bench's rows (docs/backend.md).
+    # CPU per window (GTSAM pays per factor built from Python and per point clique eliminated), with about the
+    # same ATE on the bench's rows (docs/backend.md).
     solver: Literal["gtsam", "numpy"] = "numpy"
     pose_rounds: int = 4  # pose-only: optimise / classify rounds (ORB-SLAM2: 4)
     pose_iterations: int = 10  # pose-only: LM iterations per round (ORB-SLAM2: 10)
@@ -144,8 +126,8 @@ class BackendConfig:
 
 class _CompactPoints:
     """Pickles a ``points`` dict {id: (3,) array} as two arrays: the BA worker ships every window's points both
-    ways, and a dict of ~3000 small arrays took ~16 ms to pickle and ~10 ms to unpickle on the tracking thread
-    (two arrays: well under 1 ms). Same values after the round trip."""
+    ways, and a dict of thousands of small arrays was slow to pickle and unpickle on the tracking thread, two
+    arrays are not (docs/speed.md). Same values after the round trip."""
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
@@ -197,7 +179,7 @@ class BAProblem(_CompactPoints):
     obs_uv: np.ndarray
     obs_ur: np.ndarray
     obs_sigma: np.ndarray | None = None
-    lines: LineProblem | None = None  # line landmarks (issue 6, ``vslam.backend.line_ba``), None: points only
+    lines: LineProblem | None = None  # line landmarks (``vslam.backend.line_ba``), None: points only
     # relative poses between keyframes of ``poses`` (``vslam.mapping.map.PoseLink``: a, b, T_a_b, cov), each a
     # robust BetweenFactorPose3 in both LM rounds; a keyframe they name is optimised even with no observation
     links: list | None = None
@@ -380,9 +362,9 @@ def _levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values
     poses, sequentially.
 
     That is the Schur complement of BA solvers: each point (or line) goes first, leaving only the small dense
-    system of the window's poses. On 33 local BA windows of TUM teddy (~4200 observations, ~2000 points, ~18
-    keyframes) it gives the same estimate as GTSAM's default COLAMD + multifrontal Cholesky (poses within
-    1e-15 m) in 7 % less time; multifrontal with this order is slower than the default."""
+    system of the window's poses. On TUM teddy's local BA windows it gives the same estimate as GTSAM's default
+    COLAMD + multifrontal Cholesky in a little less time; multifrontal with this order is slower than the
+    default (docs/backend.md, "Local BA timings")."""
     params = fx.lm_params(iterations)
     if schur:
         keys = np.asarray(values.keys(), dtype=np.uint64)

@@ -15,10 +15,9 @@ from gtsam.symbol_shorthand import L, X
 __all__ = ["L", "X", "FactorBuilder", "FactorCache", "symbol_keys", "pose3", "pose_matrix", "lm_params"]
 
 #: Fixed keyframes are held by a PriorFactorPose3 of this sigma (rad / m); None -> NonlinearEqualityPose3.
-#: Measured (``python -m tests.backend.bench_ba``, same results either way): NonlinearEquality linearises to
-#: a *constrained* noise model, which slows elimination wherever the fixed pose shares a clique with many
-#: others -- 6 kf x 200 pts, every point in every keyframe: 185-205 ms vs 59-61 ms per BA call (one linear
-#: solve 16 vs 2.5 ms); 10-kf windows: 220-275 ms vs 165-255 ms. 1e-6 moves a fixed pose by < 1e-9 and keeps
+#: Same results either way, but NonlinearEquality linearises to a *constrained* noise model, which slows
+#: elimination wherever the fixed pose shares a clique with many others (``python -m tests.backend.bench_ba``;
+#: docs/backend.md, "Fixed keyframes and LM damping"). 1e-6 moves a fixed pose by < 1e-9 and keeps
 #: the Hessian well inside double precision (visual blocks ~1e4-1e6, prior 1e12). The caller never sees
 #: the held pose: BAResult leaves fixed keyframes out.
 FIXED_WITH_PRIOR_SIGMA: float | None = 1e-6
@@ -209,10 +208,9 @@ def lm_params(max_iterations: int) -> gtsam.LevenbergMarquardtParams:
     a fixed x10 factor. Damping of 1 (whitened px^2 per m^2 or rad^2) is nothing next to a well-observed pose
     (~1e6) or point (~1e4) but stops a near-undetermined direction -- the depth of a mono point seen twice with
     little parallax -- from taking a huge first Gauss-Newton step behind a camera, where GTSAM's factors
-    return a constant error with a zero Jacobian and the point is stuck for good. Measured on the 3000-obs
-    window with 5 % outliers (``tests/backend/bench_ba.py`` setup, 3 seeds): default params end the first
-    10 iterations at robust cost ~26 000 (points stuck behind cameras) and take ~355 ms for both rounds;
-    these reach ~4 900 and take ~255 ms, with equal or smaller pose error.
+    return a constant error with a zero Jacobian and the point is stuck for good. On the ``bench_ba`` window
+    these settings reach a far lower cost in less time than the defaults, with equal or smaller pose error
+    (docs/backend.md, "Fixed keyframes and LM damping").
     """
     p = gtsam.LevenbergMarquardtParams()
     p.setMaxIterations(int(max_iterations))

@@ -23,9 +23,9 @@ local mapping edits the map between solves (point fusion, culling, outlier remov
 covisibility window), so the graph is rebuilt per keyframe like the visual BA. The two cheap treatments
 of the oldest state were measured on synthetic stereo-inertial (``configs/synthetic_vio.yaml``, see
 ``vslam.tracking.vio``): ``"covariance"`` -- a Gaussian prior on V and B at the previous solve's estimate
-with the previous solve's marginal covariance -- and ``"fix"`` -- V and B held at that estimate. Same
-sequence, one run each: ATE 0.0334 m ("covariance") vs 0.0369 m ("fix"), rotation 1.45 vs 1.51 deg; the
-marginal costs ~10-30 ms per keyframe (one extra factorisation), so "covariance" is the default. The marginal prior double counts the visual information
+with the previous solve's marginal covariance -- and ``"fix"`` -- V and B held at that estimate.
+"covariance" was the more accurate for the price of one extra factorisation per keyframe, so it is the
+default (docs/inertial.md, "Oldest state of the IMU chain"). The marginal prior double counts the visual information
 that reached V/B through poses still in the window (it is an approximation of marginalisation, slightly
 over-confident), which is why it is not used for the pose: the pose of the oldest keyframe is tied by
 its own visual factors and the fixed covisible keyframes as in the visual BA.
@@ -66,12 +66,12 @@ class InertialBAConfig:
     min_prior_sigma_v: float = 1e-3  # m/s: floor of the marginal prior (keeps it from freezing the state)
     min_prior_sigma_ba: float = 1e-4  # m/s^2
     min_prior_sigma_bg: float = 1e-5  # rad/s
-    # IMU factor consistency (issue 39): after the first LM round an IMU factor whose chi2 (15 dof) exceeds
+    # IMU factor consistency: after the first LM round an IMU factor whose chi2 (15 dof) exceeds
     # max_imu_chi2 disagrees with the visual poses beyond any noise model (a corrupt stretch the sample gate cannot
     # see: a stuck axis, an offset burst, a clock jump); it is dropped and the window solved again without it, the
     # state after it held by loose priors (restart_sigma_v m/s, the bias sigmas m/s^2, rad/s) at its initial guess.
-    # The threshold: factors of clean runs stay below 3 (EuRoC V1_01 with its 5x inflated noise, synthetic
-    # stereo-inertial); a +5 m/s^2 offset over 0.3 s on EuRoC gives 2000-4000. The tracker turns the test off
+    # The threshold lies between the chi2 of clean runs' factors and that of a corrupt stretch, orders of
+    # magnitude apart (docs/inertial.md, "IMU factor consistency"). The tracker turns the test off
     # monocular, where the map's scale comes from the IMU.
     max_imu_chi2: float = 1000.0
     restart_sigma_v: float = 1.0

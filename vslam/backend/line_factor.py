@@ -11,10 +11,10 @@ Huber kernel *per observation* the way ``noiseModel.Robust`` applies it (error r
 ``_huber``), so the factor's error is the Huber cost of every observation even though one factor holds many.
 
 Why one ``CustomFactor`` per *line* (all its observations) instead of per observation: the Python callback
-is the cost (DEPENDENCIES.md: ~55 us per analytic linearize vs 0.8 us for a C++ projection factor), and one
-callback per line amortises it over the observations while keeping the graph structure of the
-per-observation form (a line touches only the poses that see it). Measured here (2 shared cores, CPU time,
-``linearize``): 1 observation ~160 us, 3 ~180 us, 6 ~185 us. Local BA does not use this factor by default:
+is the cost (DEPENDENCIES.md: an analytic linearize in Python costs many times a C++ projection factor), and
+one callback per line amortises it over the observations while keeping the graph structure of the
+per-observation form (a line touches only the poses that see it): a callback costs about the same for one
+observation as for six (docs/lines.md). Local BA does not use this factor by default:
 ``line_window`` puts every line of a window into one callback (``backend.line_ba``).
 
 Jacobians (analytic). The pose is ``Pose3 = T_world_cam`` with GTSAM's right retraction T Exp(omega, v), so
@@ -52,7 +52,8 @@ _SKEW_BASIS = np.stack([skew(e).reshape(9) for e in np.eye(3)])
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Cross product over the last axis with broadcasting; np.cross costs ~45 us per call on small arrays."""
+    """Cross product over the last axis with broadcasting; np.cross's fixed cost per call dominates on small
+    arrays (docs/speed.md)."""
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
@@ -98,7 +99,7 @@ def line_factor(
     rows = np.arange(n)
 
     def error(this: gtsam.CustomFactor, v: gtsam.Values, H: list | None) -> np.ndarray:
-        # World-frame form (fewer numpy calls; each costs ~1-3 us and dominates at this size):
+        # World-frame form (fewer numpy calls; their fixed cost dominates at this size):
         # n_c = R^T (n_w - C x d_w), d_c = R^T d_w for T_world_cam = [R | C].
         U = v.atRot3(keys[0]).matrix()
         th = v.atRot2(keys[1]).theta()

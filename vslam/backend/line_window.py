@@ -1,11 +1,11 @@
 """All line observations of a BA window as ONE structureless GTSAM factor on the window's poses.
 
-Why: a Python ``CustomFactor`` per line costs ~160-350 us per call on this machine and LM calls each one
-~25 times per local BA: with one factor per line (``line_factor``), 60 lines x 4 views made a 10-keyframe,
-3000-observation window 3.5-5x slower than its points alone, and a 6-keyframe window with 25 lines x 6 views
-and 12 points 20-40x (``python -m tests.backend.bench_lines``, CPU time). Here every line of the window is
-handled in one vectorised numpy callback, and the lines are not GTSAM variables at all (like GTSAM's smart
-factors); the same 60-line window then costs ~1.2x its points alone (docs/lines.md).
+Why: a Python ``CustomFactor`` per line pays Python's call overhead on every one of LM's many calls per local
+BA: with one factor per line (``line_factor``) a window with lines was several times slower than its points
+alone, and many times slower where lines outnumber points (``python -m tests.backend.bench_lines``, CPU time).
+Here every line of the window is handled in one vectorised numpy callback, and the lines are not GTSAM
+variables at all (like GTSAM's smart factors); the same window then costs little more than its points alone
+(docs/lines.md, "the window factor's cost").
 
 1. *Lines at the poses*: at the first evaluation each line's 4-DoF orthonormal form (``plucker``) gets
    ``_PRIME_ITERATIONS`` (2) Levenberg-Marquardt steps on its Huber (IRLS) end-point distances at the initial
@@ -16,8 +16,7 @@ factors); the same 60-line window then costs ~1.2x its points alone (docs/lines.
    0.05 rad and kept per line only where it lowers that line's cost. So error() depends on the poses only
    between two linearisations, as LM assumes; it reports the cost |r| of those lines, and linearize() builds
    the reduced system at them (2.) and re-anchors. A fresh LM step per line at every evaluation (the first
-   design) reached the same estimates (98 local BAs of the poor-light corridor: poses within 5 um) at ~3x the
-   cost per evaluation.
+   design) reached the same estimates at several times the cost per evaluation (docs/lines.md).
 2. *Schur complement*: with J_l (k n x 4) the line Jacobian of a line seen n times (k rows per observation) and
    J_x its pose Jacobian, eliminating the line leaves J_x^T P J_x and J_x^T P r on the poses, P the projector
    onto the left null space of J_l (the rows Q^T J_x, Q^T r of MSCKF's null-space projection, Mourikis &
@@ -25,8 +24,8 @@ factors); the same 60-line window then costs ~1.2x its points alone (docs/lines.
    J_x^T J_x - D^T D with D = S^-1/2 J_l^T J_x (S = J_l^T J_l, 4 x 4 per line) and handed to GTSAM as 6K
    rows (K poses: the Cholesky factor of H + 1e-10 max(diag H) I). Poses the graph holds (a local BA's fixed
    keyframes, about two thirds of those that see its lines) are not among the K: their poses are read as constants.
-   Building the k n - 4 projected rows per line with a QR per group of lines instead cost more (stereo corridor,
-   17 local BAs: the factor's linearisations 16.8 -> 11.9 ms CPU per BA) and gave GTSAM a factor of hundreds of rows.
+   Building the k n - 4 projected rows per line with a QR per group of lines instead cost more (docs/lines.md)
+   and gave GTSAM a factor of hundreds of rows.
    The reduced gradient carries -D^T S^-1/2 J_l^T r, so it is exact at lines that are not yet optimal too;
    error() is the Huber cost of the line observations. A line seen twice without depths has 4 residuals for its
    4 DoF and no pose information.
@@ -129,7 +128,7 @@ class LineWindow:
         without ``pose_jac``: the inner line solve needs none).
 
         Batched matmuls and component cross products over the M observations: on these small per-observation
-        matrices numpy 2's matmul costs a half to a quarter of the same einsum (e.g. (M,4,6) x (M,6,4): 64 vs 145 us).
+        matrices numpy 2's matmul costs a fraction of the same einsum (docs/speed.md).
         """
         R, C = geom
         wo = w[self.ol]
@@ -343,7 +342,7 @@ def _so3_exp_batch(w: np.ndarray) -> np.ndarray:
 
 def _so3_log_batch(R: np.ndarray) -> np.ndarray:
     """(K,3,3) rotations of less than pi -> (K,3) rotation vectors; LM's pose steps are small (scipy's
-    ``Rotation.from_matrix`` costs ~0.25 ms on 24 rotations, this ~20 us)."""
+    ``Rotation.from_matrix`` has a far larger fixed cost per call; docs/speed.md)."""
     v = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
     s = np.linalg.norm(v, axis=1)  # sin(theta)
     th = np.arctan2(s, 0.5 * (R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1.0))

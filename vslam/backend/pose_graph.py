@@ -18,9 +18,9 @@ edges the scale the verification measured. GTSAM's ``Similarity3(R, t, s)``
 maps p to s (R p + t), so its t is ours / s (``sim_matrix`` / ``sim_parts``).
 ``vslam.loop.closing.LoopCloser.correct_sim3`` calls it for monocular loops.
 Measured on the synthetic 2-loop lighting route seen by one camera (bench rows
-room-2loops-light-mono*: 0.0322 -> 0.0065 m) and on constructed maps
-(tests/backend/test_pose_graph.py: 40-keyframe circle with 1 %/step scale drift,
-ATE 0.65 -> 0.041 m where the SE3 graph leaves 0.53 m; tests/loop/test_sim3_closing.py).
+room-2loops-light-mono*) and on constructed maps (tests/backend/test_pose_graph.py,
+tests/loop/test_sim3_closing.py): it removes the scale drift the SE3 graph leaves (docs/backend.md,
+"Pose graph").
 """
 
 from __future__ import annotations
@@ -48,10 +48,9 @@ class PoseGraphConfig:
     sigma_rot: float = 0.01  # rad, per edge and axis
     sigma_trans: float = 0.01  # metres, per edge and axis
     # Robust kernel width in sigmas; 0 = plain least squares (the default, as ORB-SLAM's essential graph).
-    # A loop edge starts many sigmas off (loop room: 15 cm / 6 deg against 1 cm / 0.6 deg edges), so a Cauchy
-    # kernel down-weights exactly the edge that should pull, and LM stops in a half-corrected state (keyframe
-    # ATE 0.088 m vs 0.069 m without the loop, even with the true loop pose). Wrong loops are kept out by
-    # verification instead.
+    # A loop edge starts many sigmas off, so a Cauchy kernel down-weights exactly the edge that should pull,
+    # and LM stops in a half-corrected state, worse than without the loop even with the true loop pose
+    # (docs/backend.md, "Pose graph"). Wrong loops are kept out by verification instead.
     cauchy_k: float = 0.0
     max_iterations: int = 50
 

@@ -10,18 +10,11 @@ Parameterisation: T_cam_world is updated on the left, ``T <- [Exp(w) | v] T``, s
 [-[p_cam]x, I]. Residual rows per observation: (uL, v, uR) - measured, whitened by 1/sigma; the uR row is
 zeroed for a mono observation, which makes one code path for mono and stereo.
 
-Why numpy and not GTSAM (``python -m tests.backend.bench_ba``, 2-core Xeon, BLAS one thread, shared
-machine; 20 % outliers of 30 px, 0.3 px noise, 3 cm / 2 deg start, 4 rounds, medians):
-
-==========================================  ===========  ===========
-                                            300 points   500 points
-numpy (this module)                         1.95 ms      2.2 ms
-GTSAM graph, points held by tight priors    24 ms        39 ms
-==========================================  ===========  ===========
-
-Both reach the same pose (0.8 / 0.3 mm, 0.005 deg from the truth) and flag the same outliers. The numpy
-cost is ~10 linearisations (~0.1 ms each, 500 points) plus per-call overhead; LM stops a round as soon as
-the step is < 1e-7 (rad, m) or the cost falls by < 1e-9 relative, so rounds 2-4 take 1-3 iterations.
+Why numpy and not GTSAM (``python -m tests.backend.bench_ba``; numbers in docs/backend.md, "Pose-only
+refinement"): a GTSAM graph with the points held by tight priors reaches the same pose and flags the same
+outliers at an order of magnitude more time. The numpy cost is a few linearisations plus per-call overhead;
+LM stops a round as soon as the step is < 1e-7 (rad, m) or the cost falls by < 1e-9 relative, so the rounds
+after the first take few iterations.
 """
 
 from __future__ import annotations

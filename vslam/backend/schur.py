@@ -7,12 +7,11 @@ the same minimum; the path differs in rounding and in the pose retraction (``T_c
 T_cam_world``, as ``pose_only``; GTSAM retracts T_world_cam on the right), so estimates agree to the LM
 tolerance, not bit for bit. Held poses are constants here, not variables with a tight prior.
 
-Why (``BackendConfig.solver``): a local BA window has few free poses (<= ``ba_window``) and thousands of
-points with two or three observations each. GTSAM eliminates the points one clique at a time and LM re-adds
-one damping factor per variable on every try: on TUM teddy windows (~3100 factors, ~1100 points, 7 free poses)
-an LM iteration costs ~15 ms (linearise 3, eliminate 6.4, damping and bookkeeping the rest) plus ~4 us per
-factor built from Python. Here the reduced camera system is dense (6 x free poses) and built with a few
-array products. ``python -m tests.backend.bench_ba`` and ``tests/backend/test_schur.py`` compare the two.
+Why (``BackendConfig.solver``): a local BA window has few free poses (<= ``ba_window``) and thousands of points
+with two or three observations each. GTSAM eliminates the points one clique at a time and LM re-adds one damping
+factor per variable on every try, and each factor is built from Python (timings on TUM teddy windows:
+docs/backend.md, "Local BA timings"). Here the reduced camera system is dense (6 x free poses) and built with a
+few array products. ``python -m tests.backend.bench_ba`` and ``tests/backend/test_schur.py`` compare the two.
 """
 
 from __future__ import annotations
@@ -174,7 +173,7 @@ class _Problem:
             s = a * self.S
             D[:, 2, 0], D[:, 2, 2] = s * iz, -s * (xn - c.baseline * iz) * iz
         Jp = np.empty((len(iz), 3, 6))
-        # row d: d^T (-[pc]x) = (pc x d)^T; np.cross's formulas written out (same values, ~2x faster)
+        # row d: d^T (-[pc]x) = (pc x d)^T; np.cross's formulas written out (same values, faster)
         a0, a1, a2 = pc[:, None, 0], pc[:, None, 1], pc[:, None, 2]
         d0, d1, d2 = D[:, :, 0], D[:, :, 1], D[:, :, 2]
         Jp[:, :, 0] = a1 * d2 - a2 * d1

@@ -18,9 +18,9 @@ from vslam.eval.result import EvalArrays, EvalResult
 logger = logging.getLogger(__name__)
 
 # A metric run (RGB-D, stereo, scaled VIO) whose Sim3 scale against the ground truth is off by more than this
-# has a unit or calibration wrong (depth in mm read as 1/5000 m gives 5x); good runs fit within 1 % (TUM teddy
-# RGB-D 1.0014). Judged only where the scale is observable: the ground truth spreads over SCALE_MIN_SPREAD_M and
-# over SCALE_SPREAD_PER_ATE times the Sim3-aligned ATE (a nearly still camera fits any scale).
+# has a unit or calibration wrong (depth in mm read as 1/5000 m gives 5x); good runs fit far closer
+# (docs/data.md, "Scale check"). Judged only where the scale is observable: the ground truth spreads over
+# SCALE_MIN_SPREAD_M and over SCALE_SPREAD_PER_ATE times the Sim3-aligned ATE (a nearly still camera fits any scale).
 SCALE_WARN = 0.10
 SCALE_MIN_SPREAD_M = 0.2
 SCALE_SPREAD_PER_ATE = 20.0

@@ -227,7 +227,8 @@ def to_orthonormal(L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Cross product over the last axis, broadcast (np.cross has ~40 us of overhead per call)."""
+    """Cross product over the last axis, broadcast (np.cross's overhead per call dominates at these sizes;
+    docs/speed.md)."""
     return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
 

@@ -34,8 +34,8 @@ def inv_T(T: np.ndarray) -> np.ndarray:
 
 def gather_Rt(T: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(K,4,4) transforms and (M,) indices -> their rotations (M,3,3) and translations (M,3). ``np.take`` of
-    contiguous copies: the same values as ``T[idx, :3, :3]``, whose mixed fancy + slice indexing is ~5-10x
-    slower (the per-observation gathers of the BA windows' inner loops)."""
+    contiguous copies: the same values as ``T[idx, :3, :3]``, whose mixed fancy + slice indexing is much
+    slower (docs/speed.md; the per-observation gathers of the BA windows' inner loops)."""
     return (np.take(np.ascontiguousarray(T[:, :3, :3]), idx, axis=0),
             np.take(np.ascontiguousarray(T[:, :3, 3]), idx, axis=0))
 

@@ -155,7 +155,7 @@ def triangulate_points(
     pixels, undistorted. K: (3, 3). pts_world is in the units of the pose translations, NaN for
     parallel rays, and only meaningful where ok is True (identical poses: every point is NaN or
     collapses onto the camera centre, and all of ok is False).
-    Vectorised midpoint method, ~1 ms for 2000 pairs.
+    Vectorised midpoint method.
     """
     tri = triangulate_two_view(T_world_c1, T_world_c2, uv1, uv2, K)
     return tri.pts_world, tri.ok(min_parallax_deg, max_reproj_px)
