@@ -1,4 +1,4 @@
-"""The GNSS-blocked mode switch (seed 000 eqs. 11-12, issue 9) on a simulated drive that follows a real
+"""The GNSS-blocked mode switch (seed 000 eqs. 11-12) on a simulated drive that follows a real
 vslam run: the drive is the ground truth of a vslam sequence, turned into the INS/GNSS simulator's truth
 (``simulate.truth_from_samples``); the VIO channel is vslam's own estimate of that sequence.
 

@@ -188,8 +188,8 @@ def _sr_gain_update(b: Belief, dX: np.ndarray, dY: np.ndarray, SR: np.ndarray,
     """
     Syy = tria(np.hstack([dY, SR]))
     Pxy = dX @ dY.T
-    # np.linalg.solve, not scipy's solve_triangular: the latter costs ~0.7 ms per call on small
-    # matrices here (threaded OpenBLAS), which dominates a Monte-Carlo run.
+    # np.linalg.solve, not scipy's solve_triangular: the latter's per-call cost on small matrices here
+    # (threaded OpenBLAS) dominates a Monte-Carlo run (docs/fusion.md).
     K = np.linalg.solve(Syy.T, np.linalg.solve(Syy, Pxy.T)).T
     S = tria(np.hstack([dX - K @ dY, K @ SR]))
     return b.x + K @ v, S, Syy @ Syy.T

@@ -3,7 +3,7 @@ visual-inertial initialisation.
 
 GTSAM types (params, pims, biases) stay inside this package and ``vslam.backend``;
 the factor graphs themselves are built only in ``vslam.backend``. ``evaluate``
-holds the real-data numbers of issue 8 (imported on demand: it reads datasets).
+holds the real-data evaluation of preintegration (imported on demand: it reads datasets).
 """
 
 from vslam.inertial.buffer import ImuBuffer

@@ -263,16 +263,16 @@ def vi_align(
     gyro_bias: (3,) starting biases (zeros when None). accel_bias_sigma: prior
     sigma (m/s^2) of the accelerometer-bias change estimated with scale and
     gravity (ORB-SLAM3 estimates it too; VINS-Mono does not); None holds it fixed,
-    and so does a keyframe span shorter than ``accel_bias_min_span_s``. Measured
-    on EuRoC V1_01 flight with ground-truth poses: holding the 0.07 m/s^2 bias
-    fixed costs ~1 deg of gravity and 2-3 % of scale; estimating it over 2 s
-    spans lets it trade with gravity (worst case 4 deg), over >= 3 s it does not.
+    and so does a keyframe span shorter than ``accel_bias_min_span_s``: on
+    EuRoC, holding the bias fixed costs gravity and scale accuracy, and
+    estimating it over short spans lets it trade with gravity (docs/inertial.md,
+    "Visual-inertial alignment").
 
     min_dt_s (with ``imu``): solve on a subset of keyframes at least this far apart and give the others
     velocities by IMU propagation from the previous solved one. Why: scale multiplies the visual positions,
     which carry noise the rows do not model, so least squares shrinks it (errors in variables); the
-    preintegrated Δp grows with dt^2 while that noise does not. Synthetic room, ground-truth keyframes
-    with 3 mm white position noise: scale 0.56 / 0.90 / 0.97 / 1.00 of the truth at 0.1 / 0.2 / 0.3 / 0.5 s.
+    preintegrated Δp grows with dt^2 while that noise does not (measured on the synthetic room:
+    docs/inertial.md, "Visual-inertial alignment").
     """
     times = np.asarray(times, dtype=np.float64)
     T_wc = np.asarray(T_world_cam, dtype=np.float64)

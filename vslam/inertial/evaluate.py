@@ -1,4 +1,4 @@
-"""How well IMU preintegration predicts the real motion (issue 8, "Numbers", first bullet).
+"""How well IMU preintegration predicts the real motion (docs/inertial.md).
 
 From ground-truth states (pose, velocity, biases) at the start of each window,
 preintegrate the recorded IMU over 0.5 / 1 / 2 s and compare the predicted

@@ -1,4 +1,4 @@
-"""Loop closing (issue 7): place descriptors, keyframe database, geometric verification, correction,
+"""Loop closing: place descriptors, keyframe database, geometric verification, correction,
 relocalisation and map files.
 
 descriptor.py  PlaceDescriptor protocol + bag-of-words baseline (vocabulary.py trains its words)

@@ -154,7 +154,7 @@ class LoopCloser:
             guess[k] = T_corr @ before[k]
         # One loop edge per keyframe of the corrected group (ORB-SLAM's loop connections). A single edge loses
         # against the chain: consecutive + covisibility edges make it several times stiffer than one edge, and
-        # the pose graph then met only ~10 % of even the true loop pose (loop room, 13 of 15 cm left).
+        # the pose graph then met only a small part of even the true loop pose (docs/loop.md, "Loop edges").
         c = match.candidate
         new = [PoseEdge(c, k, inv_T(before[c]) @ guess[k], loop=True) for k in group]
         after, e0, e1 = optimize_pose_graph(guess, edges + new, {min(m.keyframes)}, self.cfg.pose_graph)

@@ -10,9 +10,9 @@ from vslam.backend.pose_graph import PoseGraphConfig
 @dataclass(frozen=True)
 class LoopConfig:
     # Loop detection + correction per keyframe, place-recognition relocalisation. Off by default: it accepted
-    # no false loop on KITTI 07 0-159 (169 candidates) and TUM teddy and left their poses bit-identical, but the
-    # other synthetic / VIO / line rows were not re-checked and it costs ~400 ms per keyframe on the loaded
-    # 2-core machine (BoW 8 ms, the rest verification of candidates).
+    # no false loop on KITTI 07 and TUM teddy and left their poses bit-identical, but the other synthetic / VIO /
+    # line rows were not re-checked and it is costly per keyframe, mostly the verification of candidates
+    # (docs/loop.md, "LoopConfig").
     enabled: bool = False
     descriptor: str = "bow"  # key of make_place_descriptor: bow | vladnet
     vocabulary: str = ""  # vocabulary file; "" = vslam/models/orb_bow_k512.npz
@@ -41,9 +41,9 @@ class LoopConfig:
     global_ba: bool = True  # BA over the whole map after each corrected loop (ORB-SLAM runs it after the pose graph)
     global_ba_iterations: int = 10
     # Keyframes observing fewer map points than this keep their pose-graph pose in global BA: a pose seen
-    # through 3 points is not determined by them (2-loop lighting route: three such keyframes were thrown
-    # 0.7-1.8 m and 13-57 deg, their frames with them; ATE 0.083 m without loop closing, 0.356 m with it
-    # before this rule)
+    # through 3 points is not determined by them (on the 2-loop lighting route such keyframes were thrown far
+    # off, their frames with them, and loop closing made the ATE worse before this rule; docs/loop.md,
+    # "LoopConfig")
     global_ba_min_obs: int = 20
     pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
     # monocular loops are corrected as similarities (Sim3 essential graph); False: detected and verified only

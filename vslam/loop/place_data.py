@@ -1,7 +1,7 @@
 """Place-recognition data: images with ground-truth camera positions and viewing directions.
 
-Two sources (issue 7, "Training"): synthetic looping routes rendered here (seeded; a lighting change makes the
-same place look different on each lap) and real sequences read through ``open_sequence`` (frames with a
+Two sources (VLADNet training, docs/loop.md): synthetic looping routes rendered here (seeded; a lighting change
+makes the same place look different on each lap) and real sequences read through ``open_sequence`` (frames with a
 ground-truth pose). Two frames show the same place when their cameras are within ``pos_m`` metres and their
 optical axes within ``pos_deg`` degrees; they show different places beyond ``neg_m``.
 """

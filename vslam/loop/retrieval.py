@@ -1,4 +1,5 @@
-"""Place-retrieval evaluation: recall@k of a place descriptor on database / query sets (issue 7, "Retrieval").
+"""Place-retrieval evaluation: recall@k of a place descriptor on database / query sets (the
+``place-recognition`` bench row).
 
 A query counts when the database holds at least one frame of the same place (``place_data.same_place``); it
 is recalled at k when one of its k most similar database frames (cosine = dot of unit descriptors) is such a

@@ -1,4 +1,4 @@
-"""``vslam train place``: VLADNet trained with a triplet loss on places we hold (issue 7, "Training").
+"""``vslam train place``: VLADNet trained with a triplet loss on places we hold (``vslam.loop.place_data``).
 
 Positives and negatives come from ground truth or from construction, never from labels someone drew:
 

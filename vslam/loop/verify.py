@@ -51,8 +51,8 @@ class LoopVerifier:
     def candidate_points(self, m: Map, candidate: int, max_kf: int | None = None) -> np.ndarray:
         """Map point ids seen by the candidate and its most covisible keyframes with id <= ``max_kf``
         (sorted, unique). ``max_kf`` keeps the recent, drifted keyframes out: a loop candidate already
-        covisible with them would otherwise mix old and drifted points in one PnP (measured on the loop room:
-        a 13 cm / 2 deg wrong loop measurement)."""
+        covisible with them would otherwise mix old and drifted points in one PnP (seen on the loop room:
+        a wrong loop measurement; docs/loop.md, "Verification")."""
         kfs = [candidate] + [k for k in m.covisible_keyframes(candidate, 15) if max_kf is None or k <= max_kf]
         kfs = kfs[: self.cfg.local_keyframes]
         ids = np.unique(np.concatenate([m.keyframes[k].point_ids for k in kfs]))
@@ -101,9 +101,8 @@ class LoopVerifier:
         if n_in < cfg.min_inliers:
             return None
         # A loop seen over a narrow overlap (far points on one side of the image) fits a wrong pose almost as
-        # well as the true one: on the loop room a 123-inlier loop was 13 cm / 2 deg off with a predicted std of
-        # 2.0 cm, a correct one had 0.7 cm. The loop edge would bend the whole map, so such loops wait for a
-        # better view of the same place.
+        # well as the true one, with many inliers but a larger predicted std (docs/loop.md, "Verification").
+        # The loop edge would bend the whole map, so such loops wait for a better view of the same place.
         cov = pose_covariance(T, m.points_xyz(gp[inl3]), feats.uv[gk[inl3]], ur[gk[inl3]], self.stereo_cam, self.backend)
         std_m = float(np.sqrt(np.trace(cov[3:, 3:])))
         if not std_m <= cfg.max_std_m:

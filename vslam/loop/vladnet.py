@@ -1,4 +1,4 @@
-"""VLADNet: a small CNN + NetVLAD layer as the learned place descriptor (seed 003's "VLADNet", issue 7).
+"""VLADNet: a small CNN + NetVLAD layer as the learned place descriptor (seed 003's "VLADNet").
 
 NetVLAD (Arandjelović et al., CVPR 2016): local features x_i (D,) of a conv map are softly assigned to K
 learned clusters, a_k(x_i) = softmax_k(w_k . x_i + b_k); the descriptor is V_k = sum_i a_k(x_i) (x_i - c_k),

@@ -11,13 +11,9 @@ optical axis) and depth maps are exact. Per view:
 3. hit points -> face (s, r) metres -> texture atlas coordinates, and one
    ``cv2.remap`` (bilinear) produces the colour image.
 
-Measured speed, one full frame (left image + depth + mask + boxes and the right
-image) at 640x480 on one core (``taskset -c 1``, ``cv2.setNumThreads(1)``) of a
-shared 2-core AMD EPYC VM, 60 frames of the default 300-frame sequences with 3
-movers: room 23 ms median (17 ms min, 28 ms p90, about 43 frames/s); street
-27 ms median (24 ms min, 39 ms p90). Half of it is the two ``cv2.remap`` calls
-and the box trace; movers cost little because they are traced only inside their
-projected windows.
+Speed (measured in docs/data.md, "Synthetic rendering speed"): about half of a
+frame's time is the two ``cv2.remap`` calls and the box trace; movers cost little
+because they are traced only inside their projected windows.
 """
 
 from __future__ import annotations

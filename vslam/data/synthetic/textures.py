@@ -40,7 +40,7 @@ def _background(rng: np.random.Generator, h: int, w: int, base: np.ndarray, amp:
     for cell, a in ((max(h, w) // 4 + 1, 0.5), (40, 0.3), (6, 0.2)):
         lum += np.float32(amp * a) * _noise(rng, h, w, cell)
     tint = rng.uniform(0.6, 1.0, 3)
-    # base + tint * lum per channel, saturated to uint8 by OpenCV (numpy broadcasting is ~10x slower here).
+    # base + tint * lum per channel, saturated to uint8 by OpenCV (numpy broadcasting is much slower here).
     chans = [cv2.addWeighted(lum, float(tint[c]), lum, 0.0, float(base[c]), dtype=cv2.CV_8U) for c in range(3)]
     return cv2.merge(chans)
 
