@@ -63,3 +63,18 @@ def test_table_lists_every_method_and_set():
     res = {"kitti_k1": {"orb": {"auc@5": 40.0, "auc@10": 60.0, "auc@20": 80.0}},
            "ms": {"kitti": {"orb": 9.6}}, "n_keypoints": 2000, "ransac_px": 1.0, "threads": 1, "seconds": 3.0}
     assert format_table(res)[-1] == "| orb | 40/60/80 | 10 |"
+
+
+def test_bench_kind_on_real_pairs():
+    """The `pose` bench kind end to end on a few real pairs: consecutive KITTI 07 frames are an easy pose (ORB's
+    AUC@20 on them is ~85 over 50 pairs); a wrong pose convention, intrinsics or matching gives ~0."""
+    from vslam.bench import execute_job
+    from vslam.paths import data_root
+
+    if not (data_root() / "kitti/sequences/07").exists():
+        pytest.skip(f"{data_root() / 'kitti/sequences/07'} not found (set VSLAM_DATA)")
+    res = execute_job("pose", None, {"methods": ["orb"], "pairs": 4, "threads": 1}, "")
+    k1 = res["kitti_k1"]["orb"]
+    assert k1["pairs"] == 4 and k1["failed"] == 0 and k1["matches"] > 300
+    assert k1["auc@20"] > 50.0, k1
+    assert res["ms"]["kitti"]["orb"] > 0 and res["threads"] == 1
