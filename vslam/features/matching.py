@@ -162,6 +162,8 @@ def match_by_projection(
         return empty
     if pt_desc.dtype == np.uint8 and kp_desc.dtype == np.uint8 and pt_desc.shape[1] % 8 == 0:
         return _best_pairs_binary(valid, ki, pt_desc, kp_desc, max_dist, ratio)
+    if pt_desc.dtype == np.float32 and kp_desc.dtype == np.float32:
+        return _best_pairs_float(valid, ki, pt_desc, kp_desc, max_dist, ratio)
     pi = np.nonzero(valid)[0]
     ki = ki[valid].astype(np.int64)
     return best_pairs(pi, ki, descriptor_rows(pt_desc[pi], kp_desc[ki]).astype(np.float64), max_dist, ratio)
@@ -192,6 +194,33 @@ def _best_pairs_binary(valid: np.ndarray, ki: np.ndarray, pt_desc: np.ndarray, k
         sec = np.where(two[has, 1] != big, two[has, 1] // (n + 1), np.inf)
         ok &= best_d < ratio * sec
     return _one_per_target(best_q[ok], best_t[ok], best_d[ok])
+
+
+def _best_pairs_float(valid: np.ndarray, ki: np.ndarray, pt_desc: np.ndarray, kp_desc: np.ndarray, max_dist: float,
+                      ratio: float | None) -> np.ndarray:
+    """``best_pairs`` on the (P,k) candidate grid of float32 descriptors, same result (the same float32 L2 per
+    pair), without its sort: each row's best is the smallest distance, the lowest target among equal ones; its
+    second best the smallest of the rest (equal to the best on a tie, as in the sorted order)."""
+    big = np.iinfo(np.int64).max
+    flat = np.flatnonzero(valid)
+    pi = flat // valid.shape[1]
+    kv = ki.ravel()[flat].astype(np.int64)
+    d = BITS_PER_L2 * np.linalg.norm(np.take(pt_desc, pi, axis=0) - np.take(kp_desc, kv, axis=0), axis=1)
+    D = np.full(valid.shape, np.inf)
+    D.ravel()[flat] = d.astype(np.float64)
+    T = np.full(valid.shape, big, np.int64)
+    T.ravel()[flat] = kv
+    has = valid.any(axis=1)
+    best_d = D.min(axis=1)
+    col = np.where(D == best_d[:, None], T, big).argmin(axis=1)  # the lowest target among the row's best
+    rows = np.arange(len(D))
+    best_t = T[rows, col]
+    D[rows, col] = np.inf
+    sec = D.min(axis=1)
+    ok = has & (best_d <= max_dist)
+    if ratio is not None:
+        ok &= best_d < ratio * sec
+    return _one_per_target(rows[ok], best_t[ok], best_d[ok])
 
 
 def best_pairs(qi: np.ndarray, ti: np.ndarray, dist: np.ndarray, max_dist: float, ratio: float | None) -> np.ndarray:
