@@ -100,7 +100,8 @@ class AlikeExtractor:
     """The ``Extractor`` of ``features.extractor: alike-*``: at most ``n_features`` keypoints scoring above
     ``min_score``, spread over the ``grid_cols`` x ``grid_rows`` grid like ORB's (``orb.bucket``), float
     descriptors matched by L2 (``features.matching``). The floor matters: the grid otherwise fills plain cells with
-    weak, poorly placed maxima, and SLAM's accuracy falls as they are added (docs/features.md)."""
+    weak, poorly placed maxima, and SLAM's accuracy falls as they are added (docs/features.md). The network runs on
+    the CPU (``features.device`` is ConvPoint's); it is small enough that a GPU was never measured for it."""
 
     descriptor_kind = "float"
 
