@@ -85,20 +85,21 @@ def test_networks_get_the_cores_the_tracking_thread_leaves_and_threads_are_resto
     for front_thread, threads, want in ((True, 0, 2), (False, 0, 3), (True, 1, 1)):
         seen.clear()
         cfg = PipelineConfig.load(None, {"tracker": "slam", "output": {"dir": str(tmp_path), "report": False},
-                                         "slam": {"frontend_thread": front_thread, "torch_threads": threads}})
+                                         "runtime": {"frontend_thread": front_thread, "torch_threads": threads}})
         Pipeline(cfg).run(seq, progress=lambda k, n: seen.append(torch.get_num_threads()))
         assert seen == [want] * 3
         assert torch.get_num_threads() == before
 
 
 def test_run_limits_numpy_blas_threads_and_the_ba_worker_follows():
-    """SlamConfig.blas_threads caps numpy's BLAS threads while a run lasts (restored after); the async BA worker
+    """RuntimeConfig.blas_threads caps numpy's BLAS threads while a run lasts (restored after); the async BA worker
     process started meanwhile gets the same cap."""
     from threadpoolctl import threadpool_info
 
     from tests._proc import environ_after_exec
     from vslam.backend.worker import BAWorker
     from vslam.pipeline import blas_threads
+    from vslam.runtime import RuntimeConfig
     from vslam.tracking.slam import SlamConfig
 
     def counts():
@@ -106,7 +107,7 @@ def test_run_limits_numpy_blas_threads_and_the_ba_worker_follows():
 
     before = counts()
     assert before
-    with blas_threads(SlamConfig(blas_threads=1)):
+    with blas_threads(RuntimeConfig(blas_threads=1)):
         assert counts() == [1] * len(before)
         w = BAWorker()
         w.start()
@@ -116,7 +117,7 @@ def test_run_limits_numpy_blas_threads_and_the_ba_worker_follows():
         finally:
             w.close()
     assert counts() == before
-    with blas_threads(SlamConfig(blas_threads=0)):
+    with blas_threads(RuntimeConfig(blas_threads=0)):
         assert counts() == before
 
 

@@ -17,7 +17,7 @@ def test_profile_of_a_tiny_run(tmp_path, capsys, ahead):
     rc = main(["run", "--kind", "synthetic", "--max-frames", "15", "-o", str(out), "--profile",
                "--set", "dataset.synthetic.width=320", "--set", "dataset.synthetic.height=240",
                "--set", "dataset.synthetic.fx=262.5", "--set", "dataset.synthetic.fy=262.5",
-               "--set", "output.report=false", "--set", f"slam.frontend_thread={str(ahead).lower()}"])
+               "--set", "output.report=false", "--set", f"runtime.frontend_thread={str(ahead).lower()}"])
     assert rc == 0
     printed = capsys.readouterr().out
     assert "mean ms/frame" in printed and "peak RSS" in printed

@@ -44,7 +44,7 @@ def receive(f: BinaryIO) -> object:
 def spawn(module: str, blas_threads: int | None = None) -> subprocess.Popen:
     """``python -m module`` with pipes on stdin / stdout (stderr shared with this process), this checkout's
     package importable, and numpy's BLAS threads ``blas_threads`` (None: as this process has them now --
-    ``SlamConfig.blas_threads`` while a run lasts; 0: the library's default)."""
+    ``RuntimeConfig.blas_threads`` while a run lasts; 0: the library's default)."""
     env = dict(os.environ)
     root = str(Path(__file__).resolve().parents[1])  # the folder holding the vslam package
     env["PYTHONPATH"] = os.pathsep.join([root] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))

@@ -84,6 +84,10 @@ def from_dict(cls: type[C], data: dict[str, Any] | None, source: str = "<config>
     for key, value in data.items():
         name = f"{prefix}{key}"
         if key not in fields:
+            from vslam.runtime import MOVED_KEYS
+
+            if name in MOVED_KEYS:
+                raise ConfigError(f"{_where(source, name, origins)}: '{name}' is '{MOVED_KEYS[name]}' now")
             known = ", ".join(sorted(fields))
             raise ConfigError(f"{_where(source, name, origins)}: unknown key '{name}' (known: {known})")
         kwargs[key] = _coerce(hints[key], value, source, name, nonnegative, origins)

@@ -5,8 +5,8 @@ profiled again (``python -m vslam.profiling runs/x/stats.csv``). Per stage: the 
 runs on keyframes only, such as local BA, counts 0 on the other frames, so the means add up to the frame
 time), the median over the frames it ran on, how many frames that was, and its share of the mean total.
 "decode" is the time tracking waited for the next frame (frames are read ahead, beside tracking). With
-``slam.frontend_thread`` (the default) the image-only stages (features, lines, the dynamic-object detector and,
-without dynamic filtering, depth) are computed there too -- in a child process with ``slam.frontend_process``
+``runtime.frontend_thread`` (the default) the image-only stages (features, lines, the dynamic-object detector and,
+without dynamic filtering, depth) are computed there too -- in a child process with ``runtime.frontend_process``
 (the default), else on a thread: their rows are then their cost there, on the second core, and not part of
 "total" (the tracking call); "decode" includes any wait for them (and, for the first frame, the child's start).
 """
@@ -119,7 +119,7 @@ def network_speed(device: str = "auto", frames: int = 20, repeats: int = 3, thre
     a GPU): ConvPoint keypoints (int8 on the CPU, float on CUDA; ``n_features`` as the SLAM configs), the shipped
     detector's mask step (detect + keypoints in boxes), LSD lines (always the CPU) and VLADNet (once per
     keyframe). "front_end" is one frame through the first three as ``SlamTracker.frontend`` runs them: in a row on
-    the CPU, LSD on a thread beside the networks on CUDA (``SlamConfig.lines_beside_networks``).
+    the CPU, LSD on a thread beside the networks on CUDA (``RuntimeConfig.lines_beside_networks``).
     Medians over ``frames`` frames of ``sequence`` x ``repeats`` after a warm-up; torch and OpenCV get
     ``threads`` CPU threads (the project's 2-core target). Needs torch, numpy and cv2 only, so it runs on a
     machine without the SLAM back end (the GPU machine)."""
@@ -154,7 +154,7 @@ def network_speed(device: str = "auto", frames: int = 20, repeats: int = 3, thre
     def mask_step(im: np.ndarray) -> None:
         in_boxes(conv_uv, det.detect(im).boxes, 4)
 
-    pool = ThreadPoolExecutor(1) if dev.type == "cuda" else None  # SlamConfig.lines_beside_networks' default
+    pool = ThreadPoolExecutor(1) if dev.type == "cuda" else None  # RuntimeConfig.lines_beside_networks' default
 
     def front_end(im: np.ndarray) -> None:
         pending = pool.submit(lsd.detect, im, cam) if pool is not None else None

@@ -22,7 +22,7 @@ from tests.faults.conftest import N, copy_tum, replace_data_line
 from vslam.data.trajectory import read_trajectory
 
 TUM = "configs/tum_rgbd.yaml"
-FAST = ("--set", "slam.frontend_process=false")  # short runs: the child's start costs more than it saves
+FAST = ("--set", "runtime.frontend_process=false")  # short runs: the child's start costs more than it saves
 
 
 def one_error_line(rc: int, err: str, *needles: str, code: int = 2) -> str:

@@ -175,7 +175,7 @@ def _run(seq: Path, out: Path):
     # the same trajectory, sooner
     cfg = PipelineConfig.load(CONFIG, parse_overrides([f"dataset.path={seq}", f"dataset.max_frames={MAX_FRAMES}",
                                                        "eval.plots=false", "output.report=false",
-                                                       "slam.frontend_process=false"]))
+                                                       "runtime.frontend_process=false"]))
     return Pipeline(cfg).run(out_dir=out)
 
 

@@ -100,8 +100,7 @@ SMALL = dict(scene="corridor", width=320, height=240, fx=262.5, fy=262.5, n_move
 
 
 def _run(seq, frames, dense: bool):
-    st = SlamTracker(seq.calibration, "rgbd", SlamConfig(frontend_thread=False, frontend_process=False,
-                                                          dense=DenseConfig(enabled=dense)))
+    st = SlamTracker(seq.calibration, "rgbd", SlamConfig(dense=DenseConfig(enabled=dense)))
     ests = [st.track(f) for f in frames]
     traj = Trajectory(np.array([f.timestamp for f in frames]), np.array([e.T_world_cam for e in ests]))
     ate = evaluate(traj, seq.groundtruth(), EvalConfig(align="se3")).ate.translation.rmse

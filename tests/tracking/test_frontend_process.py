@@ -1,4 +1,4 @@
-"""The front end in a child process (``slam.frontend_process``): same numbers as the thread, errors keep their
+"""The front end in a child process (``runtime.frontend_process``): same numbers as the thread, errors keep their
 message, the child and its frame files go away, and a sequence that cannot be sent falls back to the thread."""
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from vslam.data.synthetic import SyntheticConfig, SyntheticSequence
 from vslam.data.types import Frame
 from vslam.errors import DatasetError
 from vslam.pipeline import Pipeline, PipelineConfig
+from vslam.runtime import RuntimeConfig
 from vslam.features import FeatureConfig
 from vslam.tracking.frontend_process import (FrontEndProcess, _ram_dir, frame_workers, one_at_a_time,
                                              ordered_frontends, read_frame_file, remove_stale_folders,
@@ -28,9 +29,9 @@ from vslam.tracking.slam import SlamConfig
 SMALL = dict(width=320, height=240, fx=262.5, fy=262.5, n_movers=0)
 
 
-def _pc(tmp_path: Path, name: str, slam: dict, n: int = 15) -> PipelineConfig:
+def _pc(tmp_path: Path, name: str, runtime: dict, n: int = 15) -> PipelineConfig:
     return PipelineConfig.load(None, {"dataset": {"kind": "synthetic", "sensor": "rgbd", "synthetic": {"n_frames": n, **SMALL}},
-                                      "slam": slam, "output": {"dir": str(tmp_path / name), "report": False}})
+                                      "runtime": runtime, "output": {"dir": str(tmp_path / name), "report": False}})
 
 
 def _stats(out: Path) -> list[dict[str, str]]:
@@ -257,12 +258,12 @@ def test_workers_default_to_two_for_stereo_without_a_network_and_never_exceed_ah
     from vslam import childproc
 
     monkeypatch.setattr(childproc, "usable_cpus", lambda: 2)
-    assert frame_workers(SlamConfig(), "stereo", 8) == 2 and frame_workers(SlamConfig(), "stereo", 1) == 1
-    assert frame_workers(SlamConfig(), "rgbd", 8) == 1
-    assert frame_workers(SlamConfig(frontend_workers=3), "rgbd", 8) == 3
-    assert frame_workers(SlamConfig(features=FeatureConfig(extractor="convpoint")), "stereo", 8) == 1
+    assert frame_workers(SlamConfig(), RuntimeConfig(), "stereo", 8) == 2 and frame_workers(SlamConfig(), RuntimeConfig(), "stereo", 1) == 1
+    assert frame_workers(SlamConfig(), RuntimeConfig(), "rgbd", 8) == 1
+    assert frame_workers(SlamConfig(), RuntimeConfig(frontend_workers=3), "rgbd", 8) == 3
+    assert frame_workers(SlamConfig(features=FeatureConfig(extractor="convpoint")), RuntimeConfig(), "stereo", 8) == 1
     monkeypatch.setattr(childproc, "usable_cpus", lambda: 1)
-    assert frame_workers(SlamConfig(), "stereo", 8) == 1
+    assert frame_workers(SlamConfig(), RuntimeConfig(), "stereo", 8) == 1
 
 
 def test_one_at_a_time_reads_after_the_parent_took_frame_k_minus_ahead():

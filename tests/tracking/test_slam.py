@@ -9,6 +9,7 @@ from vslam.data.synthetic import SyntheticConfig, SyntheticSequence
 from vslam.data.trajectory import Trajectory
 from vslam.eval import EvalConfig, evaluate
 from vslam.pipeline import Pipeline, PipelineConfig
+from vslam.runtime import RuntimeConfig
 from vslam.tracking.initializer import InitConfig
 from vslam.tracking.slam import SlamConfig, SlamTracker, write_map_ply
 
@@ -158,7 +159,7 @@ def test_front_end_computed_ahead_gives_the_same_trajectory(tmp_path):
     st = SlamTracker(seq.calibration, "stereo", cfg)
     ahead = [st.track(f, st.frontend(f)).T_world_cam for f in seq]
     np.testing.assert_array_equal(np.array(ahead), inline.poses)
-    st = SlamTracker(seq.calibration, "stereo", replace(cfg, lines_beside_networks=True))  # LSD on a thread of its own
+    st = SlamTracker(seq.calibration, "stereo", cfg, runtime=RuntimeConfig(lines_beside_networks=True))  # LSD on a thread of its own
     assert st._stage("lines").pool is not None
     beside = [st.track(f, st.frontend(f)).T_world_cam for f in seq]
     st.finish(tmp_path / "beside")
@@ -166,7 +167,7 @@ def test_front_end_computed_ahead_gives_the_same_trajectory(tmp_path):
     runs = {}
     for on in (True, False):
         pc = PipelineConfig.load(None, {"dataset": {"kind": "synthetic", "sensor": "rgbd", "synthetic": {"n_frames": 20, **SMALL}},
-                                        "slam": {"frontend_thread": on}, "output": {"dir": str(tmp_path / str(on)), "report": False}})
+                                        "runtime": {"frontend_thread": on}, "output": {"dir": str(tmp_path / str(on)), "report": False}})
         runs[on] = Pipeline(pc).run()
     np.testing.assert_array_equal(runs[True].trajectory.poses, runs[False].trajectory.poses)
 
@@ -180,8 +181,8 @@ def test_detector_run_ahead_on_the_prefetch_thread_gives_the_same_trajectory(tmp
     for on in (True, False):
         pc = PipelineConfig.load(None, {
             "dataset": {"kind": "synthetic", "sensor": "rgbd", "synthetic": {"n_frames": 15, **SMALL, "n_movers": 3}},
-            "slam": {"frontend_thread": on, "dynamic": {"enabled": True, "source": "detector",
-                                                        "weights": "models/detector_esea_synth_tiny.pt"}},
+            "runtime": {"frontend_thread": on},
+            "slam": {"dynamic": {"enabled": True, "source": "detector", "weights": "models/detector_esea_synth_tiny.pt"}},
             "output": {"dir": str(tmp_path / str(on)), "report": False}})
         runs[on] = Pipeline(pc).run()
         with open(tmp_path / str(on) / "stats.csv", newline="") as f:

@@ -73,7 +73,7 @@ class MappingConfig:
     # adjusted map), so the same input still gives the same trajectory. The frames in between track against
     # the map as it was. 0 = solve at once, in this process: a lag cost accuracy everywhere (stereo points
     # need their BA before they are tracked; monocular KITTI is lost at long lags) and, since the front end
-    # runs on the second core (``SlamConfig.frontend_thread``), no longer saves time (bench rows ``*-async``;
+    # runs on the second core (``RuntimeConfig.frontend_thread``), no longer saves time (bench rows ``*-async``;
     # docs/tracking.md, "BA lag").
     ba_lag_frames: int = 0
 

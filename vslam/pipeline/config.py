@@ -10,6 +10,7 @@ from typing import Any, Literal
 from vslam.config import load_config
 from vslam.data.config import DatasetConfig
 from vslam.eval import EvalConfig
+from vslam.runtime import RuntimeConfig
 from vslam.tracking.baseline import OdometryConfig
 from vslam.tracking.slam import SlamConfig
 from vslam.viz.rerun_log import ViewerConfig
@@ -32,6 +33,7 @@ class PipelineConfig:
     tracker: Literal["baseline", "slam"] = "slam"  # baseline: frame-to-frame odometry; slam: map + local BA
     odometry: OdometryConfig = OdometryConfig()  # settings of the baseline tracker
     slam: SlamConfig = SlamConfig()  # settings of the SLAM tracker
+    runtime: RuntimeConfig = RuntimeConfig()  # threads, front-end process: how fast, never what is computed
     eval: EvalConfig = EvalConfig()
     output: OutputConfig = OutputConfig()
 

@@ -63,14 +63,13 @@ def prefetch(seq: Sequence, n: int, depth: int = 3,
 
 
 def frontend_process(seq: Sequence, n: int, cfg: PipelineConfig):
-    """A ``FrontEndProcess`` for the run (``SlamConfig.frontend_process``), or None -- the prefetch thread
+    """A ``FrontEndProcess`` for the run (``RuntimeConfig.frontend_process``), or None -- the prefetch thread
     then -- when the sequence cannot be sent to a child process or no child can be started."""
     from vslam.tracking.frontend_process import FrontEndProcess
 
     try:
-        return FrontEndProcess(seq, n, seq.calibration, cfg.dataset.sensor, cfg.slam,
-                               torch_threads=torch_thread_count(cfg.slam),
-                               blas_threads=cfg.slam.blas_threads)
+        return FrontEndProcess(seq, n, seq.calibration, cfg.dataset.sensor, cfg.slam, cfg.runtime,
+                               torch_threads=torch_thread_count(cfg.runtime), blas_threads=cfg.runtime.blas_threads)
     except (TypeError, AttributeError, pickle.PicklingError, OSError) as e:
         log.info("front end on a thread: the sequence cannot be sent to a child process, or none started (%s)", e)
         return None

@@ -142,14 +142,14 @@ class Pipeline:
         n_total = (cfg.dataset.max_frames or sys.maxsize) if live else \
             len(seq) if cfg.dataset.max_frames <= 0 else min(len(seq), cfg.dataset.max_frames)
         n_dropped, last_index = 0, -1
-        ahead = cfg.tracker == "slam" and cfg.slam.frontend_thread
+        ahead = cfg.tracker == "slam" and cfg.runtime.frontend_thread
         # started first: the child's imports overlap building the tracker here
         # (not for live input: the camera is this process's; its front end runs on the prefetch thread)
-        child = frontend_process(seq, n_total, cfg) if ahead and cfg.slam.frontend_process and not live else None
+        child = frontend_process(seq, n_total, cfg) if ahead and cfg.runtime.frontend_process and not live else None
         odo: Odometry
         try:
             if cfg.tracker == "slam":
-                odo = SlamTracker(seq.calibration, cfg.dataset.sensor, cfg.slam)
+                odo = SlamTracker(seq.calibration, cfg.dataset.sensor, cfg.slam, runtime=cfg.runtime)
             else:
                 odo = FrameToFrameOdometry(seq.calibration, cfg.dataset.sensor, cfg.odometry)
         except BaseException:
@@ -174,8 +174,8 @@ class Pipeline:
                 from vslam.viz.rerun_log import RerunLogger
 
                 viewer = RerunLogger(cfg.output.viewer, seq, odo, cfg.eval.enabled, cfg.dataset.max_diff)
-            slam_cfg = cfg.slam if cfg.tracker == "slam" else None
-            with torch_threads(slam_cfg), blas_threads(slam_cfg), open(stats_path, "w", newline="") as fstats:
+            runtime = cfg.runtime if cfg.tracker == "slam" else None
+            with torch_threads(runtime), blas_threads(runtime), open(stats_path, "w", newline="") as fstats:
                 sw = csv.writer(fstats)
                 sw.writerow(STAT_COLUMNS)
                 frames = iter(child) if child is not None else prefetch(seq, n_total, 1 if live else 3,

@@ -1,4 +1,4 @@
-"""Execution settings of a run: BLAS and torch thread counts (``SlamConfig.blas_threads`` / ``torch_threads``)."""
+"""Thread counts while a run lasts: numpy's BLAS and torch's (``RuntimeConfig.blas_threads`` / ``torch_threads``)."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ import sys
 from typing import Iterator
 
 from vslam.childproc import usable_cpus
-from vslam.tracking.slam import SlamConfig
+from vslam.runtime import RuntimeConfig
 
 
 @contextlib.contextmanager
-def blas_threads(cfg: SlamConfig | None) -> Iterator[None]:
-    """numpy's BLAS thread count for a run (``SlamConfig.blas_threads``), restored afterwards."""
+def blas_threads(cfg: RuntimeConfig | None) -> Iterator[None]:
+    """numpy's BLAS thread count for a run (``RuntimeConfig.blas_threads``), restored afterwards."""
     if cfg is None or cfg.blas_threads <= 0:
         yield
         return
@@ -22,15 +22,15 @@ def blas_threads(cfg: SlamConfig | None) -> Iterator[None]:
         yield
 
 
-def torch_thread_count(cfg: SlamConfig) -> int:
-    """``SlamConfig.torch_threads``, or 0 resolved: the CPUs, less one for the tracking thread when the front end
+def torch_thread_count(cfg: RuntimeConfig) -> int:
+    """``RuntimeConfig.torch_threads``, or 0 resolved: the CPUs, less one for the tracking thread when the front end
     runs beside it (on a thread or in the child process, which uses the same count)."""
     return cfg.torch_threads or max(1, usable_cpus() - (1 if cfg.frontend_thread else 0))
 
 
 @contextlib.contextmanager
-def torch_threads(cfg: SlamConfig | None) -> Iterator[None]:
-    """torch's intra-op thread count for a run (``SlamConfig.torch_threads``), restored afterwards; nothing when
+def torch_threads(cfg: RuntimeConfig | None) -> Iterator[None]:
+    """torch's intra-op thread count for a run (``RuntimeConfig.torch_threads``), restored afterwards; nothing when
     the run loaded no network (torch not imported)."""
     torch = sys.modules.get("torch")
     if cfg is None or torch is None:

@@ -1,7 +1,7 @@
 """The image-only front end -- decoding the frames and ``SlamTracker.frontend`` (keypoints, segments, keypoint
 depth, detector boxes) -- in a child process, up to ``ahead`` frames ahead of tracking.
 
-Why not only the prefetch thread (``SlamConfig.frontend_thread``): on TUM teddy (2 cores) the tracking thread
+Why not only the prefetch thread (``RuntimeConfig.frontend_thread``): on TUM teddy (2 cores) the tracking thread
 is quick on a frame and slow on a keyframe (local BA), the front end (PNG decode + ORB) costs the same on every
 frame; the two balance over a keyframe's frames -- if the front end could work ahead through each BA. A thread
 cannot: GTSAM's optimiser holds the GIL through each LM round, and the thread's queue was short. Each frame after
@@ -19,7 +19,7 @@ same frames, so the numbers are those of the thread, bit for bit; it reads the s
 is pickled to it). Its log records (a frame that does not decode) go to this process's loggers.
 
 Inside the child the sequence is read (decoded, rendered) on one thread and the front ends are made on
-``SlamConfig.frontend_workers`` others, each with a tracker of its own; the frames go out in order. Why: on EuRoC
+``RuntimeConfig.frontend_workers`` others, each with a tracker of its own; the frames go out in order. Why: on EuRoC
 stereo (2 cores) the front end (two PNGs, two ORB passes, the stereo match) takes several times what tracking
 takes a frame (docs/speed.md), so one core idled while tracking waited; the front end of a frame depends on its
 images alone, so two frames can be made at once (OpenCV and numpy release the GIL) with the same numbers.
@@ -46,6 +46,7 @@ from typing import TYPE_CHECKING, Callable, Iterator
 from vslam import childproc
 from vslam.data.types import Calibration, Frame, Sequence, SensorKind
 from vslam.errors import VslamError
+from vslam.runtime import RuntimeConfig
 
 if TYPE_CHECKING:
     from vslam.tracking.slam import SlamConfig
@@ -59,14 +60,15 @@ class FrontEndProcess:
     the thread then. ``close()`` (or the end of the iteration) stops the child and removes its folder."""
 
     def __init__(self, seq: Sequence, n: int, calibration: Calibration, sensor: SensorKind, cfg,
-                 torch_threads: int = 0, blas_threads: int | None = None, ahead: int = 8):
+                 runtime: RuntimeConfig = RuntimeConfig(), torch_threads: int = 0, blas_threads: int | None = None,
+                 ahead: int = 8):
         self._proc: subprocess.Popen | None = None
         ram = _ram_dir()
         remove_stale_folders(Path(ram or tempfile.gettempdir()))
         self._dir = Path(tempfile.mkdtemp(prefix=f"{_PREFIX}{os.getpid()}-", dir=ram))
         try:  # the spec goes through a file: the pipe would hold this thread until the child has imported
             with open(self._dir / "spec.pkl", "wb") as f:
-                pickle.dump((seq, n, calibration, sensor, cfg, torch_threads, ahead,
+                pickle.dump((seq, n, calibration, sensor, cfg, runtime, torch_threads, ahead,
                              logging.getLogger("vslam").getEffectiveLevel()), f, protocol=pickle.HIGHEST_PROTOCOL)
             self._proc = childproc.spawn("vslam.tracking.frontend_process", blas_threads)
         except BaseException:  # no child: the folder goes now, not with a later run's stale-folder sweep
@@ -237,13 +239,13 @@ class _ForwardLogs(logging.Handler):
                             "funcName": record.funcName, "created": record.created}))
 
 
-def frame_workers(cfg: SlamConfig, sensor: SensorKind, ahead: int) -> int:
-    """How many frames the child makes at once: ``SlamConfig.frontend_workers``, or for 0 two for stereo without a
+def frame_workers(cfg: SlamConfig, runtime: RuntimeConfig, sensor: SensorKind, ahead: int) -> int:
+    """How many frames the child makes at once: ``RuntimeConfig.frontend_workers``, or for 0 two for stereo without a
     network when the process may use two CPUs, else one. Stereo: two ORB passes and the stereo match make the
     front end heavier than tracking (EuRoC); an RGB-D or monocular one keeps ahead alone (TUM; timings in
     docs/speed.md), and a network already spreads over the cores with torch's threads. Never more than ``ahead``, the
     frames the child may hold."""
-    n = cfg.frontend_workers
+    n = runtime.frontend_workers
     if n <= 0:
         network = cfg.features.extractor != "orb" or (cfg.dynamic.enabled and cfg.dynamic.source == "detector")
         n = 2 if sensor == "stereo" and not network and childproc.usable_cpus() >= 2 else 1
@@ -340,7 +342,7 @@ def _serve() -> None:
         folder = str(childproc.receive(inp))
         spec = Path(folder, "spec.pkl")
         with open(spec, "rb") as f:
-            seq, n, calibration, sensor, cfg, torch_threads, ahead, log_level = pickle.load(f)
+            seq, n, calibration, sensor, cfg, runtime, torch_threads, ahead, log_level = pickle.load(f)
         spec.unlink()  # not kept in RAM for the whole run
         root = logging.getLogger()
         root.handlers[:] = [_ForwardLogs(send)]
@@ -349,7 +351,8 @@ def _serve() -> None:
             from vslam.tracking.slam import SlamTracker
 
             fcfg = frontend_only(cfg)
-            trackers = [SlamTracker(calibration, sensor, fcfg) for _ in range(frame_workers(cfg, sensor, ahead))]
+            trackers = [SlamTracker(calibration, sensor, fcfg, runtime=runtime)
+                        for _ in range(frame_workers(cfg, runtime, sensor, ahead))]
             torch = sys.modules.get("torch")
             if torch is not None and torch_threads > 0:
                 torch.set_num_threads(torch_threads)

@@ -28,6 +28,7 @@ from vslam.geometry.se3 import inv_T
 from vslam.loop.config import LoopConfig
 from vslam.mapping.local_mapping import LocalMapper, MappingConfig
 from vslam.mapping.map import Map
+from vslam.runtime import RuntimeConfig
 from vslam.tracking.atlas import Atlas, AtlasConfig
 from vslam.tracking.baseline import FrameEstimate
 from vslam.tracking.dense import DenseConfig
@@ -63,39 +64,6 @@ class SlamConfig:
     dense: DenseConfig = field(default_factory=DenseConfig)  # RGB-D: depth ICP where features fail (tracking.dense)
     # tracking lost: a new map, and maps merged where they meet (``vslam.tracking.atlas``)
     atlas: AtlasConfig = field(default_factory=AtlasConfig)
-    # Keypoints, line segments, keypoint depth and detector boxes depend on the image alone: ``vslam run``
-    # computes them for the next frames on its prefetch thread while this one is tracked (OpenCV / torch release
-    # the GIL, so it uses a second core). Same numbers either way; off = everything on the tracking thread.
-    frontend_thread: bool = True
-    # With frontend_thread: decode the frames and run that front end in a child process instead of a thread
-    # (``vslam.tracking.frontend_process``: GTSAM's BA holds the GIL, and a thread cannot work ahead through it).
-    # The same numbers bit for bit; faster where the front end is what tracking waits for (TUM teddy ORB-only, the
-    # learned pipeline). The child's start counts too: on short subsets it costs more than it saves
-    # (docs/speed.md). A sequence that cannot be pickled to the
-    # child runs on the thread.
-    frontend_process: bool = True
-    # With frontend_process: frames whose front end the child makes at once, a thread and a tracker each, while
-    # another thread reads the sequence. A frame's front end depends on its images alone, so the numbers are the
-    # same for any count. Where tracking is light the front end is what it waits for (EuRoC stereo), and one
-    # frame at a time left a core idle. 0 = 2 for stereo without a network where the process may use 2+ CPUs,
-    # else 1 (an RGB-D front end keeps ahead alone; torch's threads already spread a network over the cores);
-    # ``frontend_process.frame_workers``; timings in docs/speed.md.
-    frontend_workers: int = 0
-    # LSD segments on a thread of their own, beside the networks: on a GPU LSD (CPU) takes longer than
-    # ConvPoint or the detector (docs/speed.md), so in a row the front end costs their sum, side by side the
-    # longest. None = when the keypoint network runs on CUDA (the 2-core CPU target has no core to
-    # spare); the same segments either way.
-    lines_beside_networks: bool | None = None
-    # Intra-op threads of the networks (torch) while ``Pipeline.run`` lasts; 0 = the CPUs this process may use,
-    # less one for the tracking thread when the front end has its own. torch's default (every core) put three
-    # busy threads on the 2-core VM and slowed the learned pipeline (docs/speed.md).
-    # The thread count changes float summation order, hence trajectories a little (docs/speed.md).
-    torch_threads: int = 0
-    # numpy's BLAS (OpenBLAS) threads while ``Pipeline.run`` lasts (and in the BA worker process); 0 = its default
-    # (every core). Its matrices here are small (BA windows, batched 4x4 line solves): a second OpenBLAS thread
-    # spins beside them and takes the core the front-end thread needs: with lines, local BA spent more than
-    # twice the CPU with it (docs/lines.md). Same trajectories byte for byte.
-    blas_threads: int = 1
 
 
 __all__ = ["FrameView", "FrontEnd", "SlamConfig", "SlamTracker", "write_map_ply"]  # FrameView, FrontEnd: vslam.tracking.frontend
@@ -105,10 +73,11 @@ class SlamTracker:
     """Feed frames in order with ``track(frame)``; ``finish(out_dir)`` writes the keyframes and the map."""
 
     def __init__(self, calibration: Calibration, sensor: SensorKind, cfg: SlamConfig = SlamConfig(),
-                 detector: object | None = None):
+                 detector: object | None = None, runtime: RuntimeConfig = RuntimeConfig()):
         """``detector``: an object with ``detect(image) -> Detections`` that replaces the configured network of
-        ``slam.dynamic`` (source=detector): a user's own detector, or a test's oracle."""
-        self.calib, self.sensor, self.cfg = calibration, sensor, cfg
+        ``slam.dynamic`` (source=detector): a user's own detector, or a test's oracle. ``runtime``: how the
+        front end uses the machine (``RuntimeConfig.lines_beside_networks``)."""
+        self.calib, self.sensor, self.cfg, self.runtime = calibration, sensor, cfg, runtime
         self.cam = calibration.cam0
         if sensor == "stereo":
             if calibration.cam1 is None or calibration.baseline is None:
@@ -213,7 +182,6 @@ class SlamTracker:
 
     def track(self, frame: Frame, front: FrontEnd | None = None) -> FrameEstimate:
         """One frame; ``front``: its ``frontend(frame)`` if computed ahead (else computed here)."""
-        t0 = time.perf_counter()
         for s in self.stages:
             s.on_frame(frame)
         if front is None:

@@ -26,7 +26,7 @@ def build_stages(slam: Any, detector: object | None = None) -> list[Stage]:
     if cfg.lines.enabled:
         from vslam.tracking.stages.lines import LineStage
 
-        beside = cfg.lines_beside_networks
+        beside = slam.runtime.lines_beside_networks
         if beside is None:
             beside = getattr(getattr(slam.extractor, "device", None), "type", "cpu") == "cuda"
         stages.append(LineStage(slam, beside))

@@ -13,7 +13,7 @@ from vslam.tracking.stages.base import Stage
 
 
 class LineStage(Stage):
-    """``beside``: LSD runs on a thread of its own, beside the keypoint network (``SlamConfig.lines_beside_networks``)."""
+    """``beside``: LSD runs on a thread of its own, beside the keypoint network (``RuntimeConfig.lines_beside_networks``)."""
 
     name = "lines"
 
