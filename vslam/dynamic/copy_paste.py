@@ -33,7 +33,7 @@ from vslam.dynamic.data import Sample, ignore_boxes, instance_masks, mask_validi
 def background_files(root: Path, sources: dict[str, tuple[str, int, int]]) -> list[Path]:
     """``sources``: kind -> (folder under ``root``, number of leading frames used, stride). Missing folders are
     left out (a fresh clone without the data)."""
-    from vslam.features.train_keypoints import sequence_frames
+    from vslam.features.keypoint_data import sequence_frames
 
     out: list[Path] = []
     for kind, (rel, n, stride) in sources.items():

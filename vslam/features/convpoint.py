@@ -104,10 +104,10 @@ def int8_convpoint(net: ConvPointNet, qparams: dict[str, float]) -> ConvPointInt
 
 def calibration_inputs(root: Path, per_source: int) -> list[torch.Tensor]:
     """Standardised full-size training images (never the held-out ones), ``per_source`` from each source."""
-    from vslam.features.train_keypoints import KeypointTrainConfig, image_files
+    from vslam.features.keypoint_data import KeypointSplits, image_files
 
     out = []
-    for fs in image_files(KeypointTrainConfig(), root, held_out=False).values():
+    for fs in image_files(KeypointSplits(), root, held_out=False).values():
         for i in np.unique(np.linspace(0, len(fs) - 1, min(per_source, len(fs))).round().astype(int)) if fs else []:
             im = cv2.imread(str(fs[i]), cv2.IMREAD_GRAYSCALE)
             if im is not None:

@@ -51,10 +51,10 @@ class FeatureBenchConfig:
 
 
 def held_out_images(root: Path, max_per_source: int) -> dict[str, list[tuple[str, np.ndarray]]]:
-    """Grey held-out images per source, the splits of ``train_keypoints.KeypointTrainConfig``."""
-    from vslam.features.train_keypoints import KeypointTrainConfig, image_files
+    """Grey held-out images per source, the splits of ``keypoint_data.KeypointSplits``."""
+    from vslam.features.keypoint_data import KeypointSplits, image_files
 
-    files = image_files(KeypointTrainConfig(), root, held_out=True)
+    files = image_files(KeypointSplits(), root, held_out=True)
     out = {}
     for name, fs in files.items():
         pick = np.unique(np.linspace(0, len(fs) - 1, min(max_per_source, len(fs))).round().astype(int)) if fs else []
@@ -189,9 +189,9 @@ def homography_benchmark(methods: dict[str, Method], images: dict[str, list[tupl
 
 def epipolar_sequences(root: Path) -> dict[str, tuple[str, int]]:
     """The held-out sequences of the epipolar check that ``root`` holds: {name: (folder, first held-out frame)}."""
-    from vslam.features.train_keypoints import KeypointTrainConfig
+    from vslam.features.keypoint_data import KeypointSplits
 
-    tc = KeypointTrainConfig()
+    tc = KeypointSplits()
     seqs = {"tum": (tc.tum, tc.tum_split), "kitti": (tc.kitti, tc.kitti_split)}
     return {name: (rel, split) for name, (rel, split) in seqs.items() if (root / rel).exists()}
 

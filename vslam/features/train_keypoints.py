@@ -34,6 +34,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from vslam.features.keypoint_data import KeypointSplits, image_files
 from vslam.progress import Progress
 
 log = logging.getLogger(__name__)
@@ -69,16 +70,16 @@ class KeypointTrainConfig:
     nms_radius: int = 4
     lr: float = 1e-3
     weight_decay: float = 1e-4
-    # data (under the data root; "" = none)
-    coco: str = "coco128/images"
-    coco_split: int = 100
-    tum: str = "tum/rgbd_dataset_freiburg3_teddy"
-    tum_split: int = 100
-    kitti: str = "kitti/sequences/07"
-    kitti_split: int = 80
-    euroc: str = "euroc/V1_01_easy_micro"
-    euroc_split: int = 48
-    frame_stride: int = 2  # every n-th training frame of the sequences (neighbours are near-duplicates)
+    # data (under the data root; "" = none): the splits of ``keypoint_data.KeypointSplits`` unless changed
+    coco: str = KeypointSplits.coco
+    coco_split: int = KeypointSplits.coco_split
+    tum: str = KeypointSplits.tum
+    tum_split: int = KeypointSplits.tum_split
+    kitti: str = KeypointSplits.kitti
+    kitti_split: int = KeypointSplits.kitti_split
+    euroc: str = KeypointSplits.euroc
+    euroc_split: int = KeypointSplits.euroc_split
+    frame_stride: int = KeypointSplits.frame_stride
     seed: int = 0
     threads: int = 2
     device: str = "auto"
@@ -165,28 +166,6 @@ def _read_grey(path: Path, short: int) -> np.ndarray | None:
         return None
     s = short / min(im.shape[:2])
     return cv2.resize(im, (round(im.shape[1] * s), round(im.shape[0] * s)), interpolation=cv2.INTER_AREA)
-
-
-def sequence_frames(kind: str, path: Path) -> list[Path]:
-    """The image files of a COCO folder or a TUM / KITTI / EuRoC sequence, in time (name) order."""
-    sub = {"coco": ".", "tum": "rgb", "kitti": "image_0", "euroc": "mav0/cam0/data"}[kind]
-    return sorted(p for p in (path / sub).rglob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
-
-
-def image_files(cfg: KeypointTrainConfig, root: Path, held_out: bool) -> dict[str, list[Path]]:
-    """The real images of each source, training (before the split) or held-out (from the split on)."""
-    out: dict[str, list[Path]] = {}
-    srcs = (("coco", cfg.coco, cfg.coco_split), ("tum", cfg.tum, cfg.tum_split), ("kitti", cfg.kitti, cfg.kitti_split),
-            ("euroc", cfg.euroc, cfg.euroc_split))
-    for name, rel, split in srcs:
-        if not rel:
-            continue
-        if not (root / rel).exists():
-            log.warning("%s images not found at %s: %s without them", name, root / rel, "held out" if held_out else "trained")
-            continue
-        files = sequence_frames(name, root / rel)
-        out[name] = files[split:] if held_out else files[:split:1 if name == "coco" else cfg.frame_stride]
-    return out
 
 
 def training_images(cfg: KeypointTrainConfig, root: Path) -> list[np.ndarray]:
