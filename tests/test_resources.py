@@ -20,12 +20,13 @@ REPO = PACKAGE.parent
 
 def _default_weights() -> list[Path]:
     from vslam.dynamic.detector import default_weights as detector
+    from vslam.dynamic.detector import photo_weights
     from vslam.features.alike import VARIANTS, shipped_weights
     from vslam.features.convpoint import default_weights as convpoint
     from vslam.loop.descriptor import default_vladnet_path
     from vslam.loop.vocabulary import default_vocabulary_path
 
-    return [convpoint(), detector(), default_vladnet_path(), default_vocabulary_path(),
+    return [convpoint(), detector(), photo_weights(), default_vladnet_path(), default_vocabulary_path(),
             *(shipped_weights(n) for n in VARIANTS)]
 
 

@@ -72,7 +72,7 @@ def test_cli_on_a_real_photo(tmp_path):
     if not photo.is_file() or not model.is_file():
         pytest.skip(f"needs {photo} (set VSLAM_DATA) and the shipped {model.name}")
     out = tmp_path / "dets.json"
-    assert main(["-q", "detect", str(photo), "-o", str(out), "--model", str(model), "--threshold", "0.5"]) == 0
+    assert main(["-q", "detect", str(photo), "-o", str(out), "--threshold", "0.5"]) == 0  # the default: YOLOX
     res = json.loads(out.read_text())
     people = [r for r in res if r["category_id"] == 1]
     assert len(people) == 2 and all(r["image_id"] == 0 and r["file_name"] == str(photo) for r in people)

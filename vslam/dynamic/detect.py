@@ -84,8 +84,8 @@ def add_cli(sub: argparse._SubParsersAction) -> None:
     d = sub.add_parser("detect", help="detect people and vehicles on images; write COCO-format results (JSON)")
     d.add_argument("images", nargs="+", help="image files or folders of images")
     d.add_argument("--out", "-o", required=True, help="JSON file to write (a list of COCO result entries)")
-    d.add_argument("--model", default="", help="detector checkpoint, either format (default: the shipped one, "
-                                               "as slam.dynamic.weights)")
+    d.add_argument("--model", default="", help="detector checkpoint, either format (default: the shipped YOLOX-nano, "
+                                               "the most accurate on photos; SLAM's default is slam.dynamic.weights)")
     d.add_argument("--threshold", type=float, help="keep detections scoring at least this (default: SLAM's "
                                                    "slam.dynamic.score_threshold)")
     d.add_argument("--img-size", type=int, default=0, help="network input size, a multiple of 32 (0 = the size "
@@ -107,7 +107,9 @@ def cmd_detect(args: argparse.Namespace) -> int:
     if not 0 <= threshold <= 1:
         raise ConfigError(f"--threshold is a score in [0, 1], got {threshold}")
     files = image_files(args.images)
-    det, _, name = build_detector(args.model, False, args.threads, args.img_size, args.wide)
+    from vslam.dynamic.detector import photo_weights
+
+    det, _, name = build_detector(args.model or str(photo_weights()), False, args.threads, args.img_size, args.wide)
     det.conf = min(det.conf, threshold)
     with progress_bar("detecting", len(files), unit="image", quiet=args.quiet) as bar:
         res = coco_results(det, files, threshold, bar)

@@ -7,7 +7,7 @@ std, resized by one scale to fit the input and placed at the top-left of a grey 
 ``img_size`` square by default (the source's 416x416); ``wide`` keeps the frame's aspect instead (the longer side
 ``img_size``, the shorter rounded up to a multiple of 32: a 1241x376 KITTI frame at 1248 runs at 1248x384, where a
 square input would shrink its people to a third of the height). Decoding and class-aware NMS use
-``vslam.nn.ops`` through ``detector.postprocess``.
+``vslam.nn.ops`` through ``detections.postprocess``.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 import torch
 
-from vslam.dynamic.detector import Detections, postprocess
+from vslam.dynamic.detections import Detections, postprocess
 from vslam.errors import ConfigError
 
 PAD_VALUE = 114
