@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from vslam.batch import Job, grid_overrides, parse_sweep, run_jobs, same_metrics
+from vslam.bench.batch import Job, grid_overrides, parse_sweep, run_jobs, same_metrics
 from vslam.config import deep_merge
 from vslam.errors import ConfigError
 

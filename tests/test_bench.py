@@ -7,7 +7,8 @@ import pytest
 import json
 from pathlib import Path
 
-from vslam.bench import load_sidecar, load_suite, run_bench, stage_times
+from vslam.bench import load_sidecar, load_suite, run_bench
+from vslam.bench.kinds.run import stage_times
 from vslam.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -106,7 +107,7 @@ def test_unreadable_sidecar_is_ignored(tmp_path, caplog):
 
 
 def test_make_dynamic_rows_name_their_sequence(tmp_path):
-    from vslam.bench import _composited
+    from vslam.bench.run import _composited
 
     with pytest.raises(ConfigError, match="needs 'data'"):
         _composited({"people": 2}, tmp_path)
@@ -120,17 +121,17 @@ def test_make_dynamic_rows_name_their_sequence(tmp_path):
 
 def test_ab_rows_over_composites_run_one_grid_point_per_walker_seed(tmp_path, monkeypatch):
     """make_dynamic seeds: A and B run on each seed's composite (same folder for both), the table names seeds."""
-    import vslam.batch
-    import vslam.bench
+    import vslam.bench.batch
+    import vslam.bench.run
 
-    monkeypatch.setattr(vslam.bench, "_composited", lambda spec, jobs_dir: ("tum", tmp_path / f"walkers-{spec['seed']}"))
+    monkeypatch.setattr(vslam.bench.run, "_composited", lambda spec, jobs_dir: ("tum", tmp_path / f"walkers-{spec['seed']}"))
     seen = []
 
     def fake_run_jobs(jobs, workers, ray, progress=None):
         seen.extend(jobs)
         return [{"ate_rmse": 0.001 * (i + 1)} for i in range(len(jobs))]
 
-    monkeypatch.setattr(vslam.batch, "run_jobs", fake_run_jobs)
+    monkeypatch.setattr(vslam.bench.batch, "run_jobs", fake_run_jobs)
     suite = tmp_path / "configs" / "suite.yaml"
     suite.parent.mkdir()
     suite.write_text("rows:\n  - name: people-seeds\n    kind: ab\n    config: configs/x.yaml\n"
@@ -239,7 +240,7 @@ def _check_suite(tmp_path, text: str = CHECK_SUITE) -> Path:
 
 
 def test_checks_are_parsed_from_the_suite_and_bad_ones_named(tmp_path):
-    from vslam.bench_checks import Check, check_text, target_text
+    from vslam.bench.checks import Check, check_text, target_text
 
     rows = {r.name: r for r in load_suite(_check_suite(tmp_path)).rows}
     assert rows["ref"].check == (Check("ate_pct_path", "<=", value=0.5), Check("untracked", "==", value=0.0))
@@ -260,7 +261,7 @@ def test_checks_are_parsed_from_the_suite_and_bad_ones_named(tmp_path):
 
 
 def test_checks_evaluate_values_ratios_to_other_rows_and_paths():
-    from vslam.bench_checks import Check, evaluate_check, metric_value, verdict
+    from vslam.bench.checks import Check, evaluate_check, metric_value, verdict
 
     entries = {n: {"result": r} for n, r in {
         "ref": _run(0.010),
@@ -315,7 +316,7 @@ def test_checks_evaluate_values_ratios_to_other_rows_and_paths():
 def test_same_pose_checks_allow_a_relative_tolerance_and_say_both_numbers():
     """``~=``: rows that must give another row's poses. The same run measured on two machines (0.0039 vs 0.0041 m,
     5 %) passes a 10 % tolerance; a regression that moves the ATE by a fifth does not."""
-    from vslam.bench_checks import Check, check_text, evaluate_check
+    from vslam.bench.checks import Check, check_text, evaluate_check
 
     entries = {n: {"result": _run(a)} for n, a in {"ref": 0.0039, "other_machine": 0.0041, "regressed": 0.0047,
                                                     "better_by_luck": 0.0033}.items()}
@@ -360,7 +361,7 @@ def test_bench_check_exits_1_on_a_miss_and_0_when_every_miss_is_open(tmp_path, c
 
 def test_render_from_the_sidecar_marks_rows_and_names_their_commit(tmp_path):
     from vslam.bench import render_bench
-    from vslam.bench_checks import git_commit
+    from vslam.bench.checks import git_commit
 
     suite = _check_suite(tmp_path)
     _sidecar(tmp_path, {"ref": _run(0.010), "variant": _run(0.0115), "words": _run(0.5)},

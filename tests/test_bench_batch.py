@@ -67,7 +67,7 @@ def test_ab_row_runs_both_sides_on_every_seed(tmp_path):
 
 def test_ab_table_names_the_first_failed_run():
     """A failed run's error reaches the table (one line, no cell break), not only BENCHMARKS.json."""
-    from vslam.batch import ab_result, ab_table
+    from vslam.bench.batch import ab_result, ab_table
     from vslam.bench import BenchRow
 
     row = BenchRow(name="x-ab", kind="ab", treatment=("k=1",), target="t")

@@ -20,7 +20,7 @@ LAYERS = [
     ["loop"],
     ["tracking"],
     ["pipeline", "profiling", "fusion"],
-    ["bench_checks", "batch", "bench", "train_cli", "cli", "__main__"],
+    ["bench", "train_cli", "cli", "__main__"],
 ]
 LAYER = {p: i for i, names in enumerate(LAYERS) for p in names}
 
@@ -31,9 +31,7 @@ KNOWN_UPWARD = {
     ("vslam.features.train_keypoints", "vslam.train_cli"),
     ("vslam.loop.train_place", "vslam.train_cli"),
 }
-KNOWN_CYCLES = [
-    {"vslam.batch", "vslam.bench"},  # the bench package with a kind registry
-]
+KNOWN_CYCLES: list[set[str]] = []
 
 
 def _modules() -> dict[str, Path]:

@@ -113,10 +113,10 @@ def test_quiet_flag_before_or_after_the_subcommand(monkeypatch, tmp_path):
 
 
 def test_bench_jobs_report_each_job(monkeypatch):
-    import vslam.bench
-    from vslam.batch import Job, run_jobs
+    import vslam.bench.jobs
+    from vslam.bench.batch import Job, run_jobs
 
-    monkeypatch.setattr(vslam.bench, "run_job", lambda kind, config, over, out: {"ok": out})
+    monkeypatch.setattr(vslam.bench.jobs, "run_job", lambda kind, config, over, out: {"ok": out})
     seen = []
     res = run_jobs([Job("slam", None, {}, f"j{i}") for i in range(3)], progress=lambda d, t: seen.append((d, t)))
     assert [r["ok"] for r in res] == ["j0", "j1", "j2"] and seen == [(1, 3), (2, 3), (3, 3)]

@@ -209,7 +209,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from vslam.bench import check_bench, render_bench, run_bench
 
-    from vslam.batch import parse_sweep
+    from vslam.bench.batch import parse_sweep
 
     sweep = parse_sweep(args.sweep) if args.sweep else None
     output = Path(args.output or ("runs/bench/sweep.md" if sweep else "BENCHMARKS.md"))

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from vslam.bench import BenchRow, _imu_table
+from vslam.bench import BenchRow
+from vslam.bench.kinds.inertial import table as _imu_table
 
 
 def test_imu_table_renders_windows_static_alignment_and_failures() -> None:

@@ -1,7 +1,7 @@
 """Fan benchmark jobs out (issue 10): one after another in fresh processes (the default: clean timings),
 over a local process pool (``--jobs N``), or as Ray tasks on a cluster or a local Ray instance (``--ray``).
 
-A job is ``(kind, config, overrides, out_dir)`` as ``vslam.bench.execute_job`` takes it. Every job runs in a
+A job is ``(kind, config, overrides, out_dir)`` as ``vslam.bench.jobs.execute_job`` takes it. Every job runs in a
 process of its own (pool: one task per child; Ray: ``max_calls=1``), so peak RSS stays per job and no state
 crosses jobs: the metrics equal the serial run's (fixed seeds, no global state), only the timings change, as
 parallel jobs share the cores. Ray on a cluster needs vslam (and the data under ``$VSLAM_DATA``) installed on
@@ -20,6 +20,7 @@ import sys
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Iterator
 
+from vslam.bench.tables import md_failed_row, md_section
 from vslam.errors import ConfigError
 from vslam.progress import Progress
 
@@ -43,7 +44,7 @@ def _threads_env() -> None:
 def _guarded(job: Job) -> dict[str, Any]:
     """Run one job in this (fresh) process; an exception becomes {"error": ...} like the serial path's."""
     _threads_env()
-    from vslam.bench import execute_job
+    from vslam.bench.jobs import execute_job
 
     try:
         return execute_job(job.kind, job.config, job.overrides, job.out_dir)
@@ -67,7 +68,7 @@ def run_jobs(jobs: list[Job], workers: int = 1, ray: str | None = None,
     if ray is not None:
         return counted(_run_ray(jobs, workers, ray))
     if workers <= 1:
-        from vslam.bench import run_job
+        from vslam.bench.jobs import run_job
 
         return counted(run_job(j.kind, j.config, j.overrides, j.out_dir) for j in jobs)
     kw: dict[str, Any] = {"max_workers": workers, "mp_context": mp.get_context("spawn")}
@@ -169,8 +170,6 @@ def batch_row(config: str | None, overrides: dict[str, Any], grid: dict[str, lis
 
 def batch_table(rows: list[tuple[Any, dict[str, Any]]]) -> list[str]:
     """BENCHMARKS.md section for kind "batch" rows: (BenchRow, result) pairs."""
-    from vslam.bench import md_failed_row, md_section
-
     if not rows:
         return []
     lines = md_section("Batch evaluation: serial vs process pool vs Ray",
@@ -238,8 +237,6 @@ def _ratio_of_means(pairs: list[tuple[float, float]]) -> float | None:
 
 def ab_table(rows: list[tuple[Any, dict[str, Any]]]) -> list[str]:
     """BENCHMARKS.md section for kind "ab" rows: (BenchRow, result) pairs."""
-    from vslam.bench import md_failed_row, md_section
-
     if not rows:
         return []
     lines = md_section("A/B over a grid (seeds, feature budgets)",

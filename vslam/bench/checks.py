@@ -19,7 +19,7 @@ dotted path into the result dict (``ms.front_end``, ``stages.mapping_per_kf``); 
 index or the unique prefix of a key (``sets.TUM.vladnet.r@1``). ``open`` marks a known miss and says why
 (what is missing, in words a user reads): ``vslam bench --check`` lists such misses apart and fails only on the others.
 
-Pure functions of (row, sidecar entries): ``vslam.bench`` renders and checks with them.
+Pure functions of (row, sidecar entries): ``vslam.bench.render`` renders and checks with them.
 """
 
 from __future__ import annotations
@@ -103,7 +103,7 @@ def _mean(key: str) -> Callable[[dict[str, Any]], float | None]:
 
 
 METRICS: dict[str, Metric] = {
-    # kind run (vslam.bench._job_run)
+    # kind run (vslam.bench.kinds.run.job)
     "ate_rmse": Metric("ATE", "m", ".4f"),
     "ate_rmse_measured": Metric("ATE of the measured frames", "m", ".4f"),
     "ate_pct_path": Metric("ATE", "% of path", ".2f", _ratio("ate_rmse", "path_m", 100.0)),
@@ -123,14 +123,14 @@ METRICS: dict[str, Metric] = {
     "rpe_r": Metric("RPE", "°", ".3f"),
     "sim3_scale": Metric("Sim3 scale s", "", ".4f", _sim3_scale),
     "stages.mapping_per_kf": Metric("local mapping ms/keyframe", "", ".1f"),
-    # kind ab (vslam.batch.ab_result)
+    # kind ab (vslam.bench.batch.ab_result)
     "mean_ratio": Metric("mean ATE B / mean ATE A", "", ".2f"),
     "kf_ms_ratio": Metric("mapping ms/keyframe B / A", "", ".2f"),
     "ate_a_mean": Metric("mean ATE A", "m", ".4f", _mean("a")),
     "ate_b_mean": Metric("mean ATE B", "m", ".4f", _mean("b")),
     # kind line_ba (vslam.profiling.line_ba_cost)
     "ratio": Metric("CPU per local BA with lines / without", "", ".2f"),
-    # kind batch (vslam.batch.batch_row)
+    # kind batch (vslam.bench.batch.batch_row)
     "pool_speedup": Metric("process-pool speed-up", "", ".2f"),
     "ray_speedup": Metric("Ray speed-up", "", ".2f"),
     "pool_identical": Metric("pool metrics = serial (1 = yes)", "", "g", lambda r: _bool(r.get("pool_identical"))),
