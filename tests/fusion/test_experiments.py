@@ -7,7 +7,8 @@ import json
 
 import pytest
 
-from vslam.fusion.experiments import EXPERIMENTS, add_cli
+from vslam.cli.fusion import add_cli
+from vslam.fusion.experiments import EXPERIMENTS
 
 
 @pytest.mark.parametrize("name", sorted(set(EXPERIMENTS) - {"validity_vslam"}))  # runs vslam: test_exp_vslam.py

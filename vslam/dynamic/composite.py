@@ -10,7 +10,6 @@ so the same SLAM run on the clean and the composited frames gives the ATE ratio 
 
 from __future__ import annotations
 
-import argparse
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -352,30 +351,3 @@ def walker_config(data: Path, people: int | None, seed: int, max_frames: int | N
     if is_kitti_layout(data):
         return MakeDynamicConfig.for_kitti(6 if people is None else people, seed, max_frames)
     return MakeDynamicConfig(n_people=3 if people is None else people, seed=seed, max_frames=max_frames)
-
-
-def add_cli(sub: argparse._SubParsersAction) -> None:
-    m = sub.add_parser("make-dynamic", help="composite walking COCO people into a TUM RGB-D or KITTI sequence (+ masks)")
-    m.add_argument("data", help="TUM RGB-D sequence folder (undistorted camera, e.g. freiburg3) or KITTI sequence "
-                   "folder with poses; relative paths also under $VSLAM_DATA")
-    m.add_argument("out", help="output folder (the input's layout + masks + boxes.txt)")
-    m.add_argument("--coco", default="coco128", help="COCO128 folder with segments/ (relative: under $VSLAM_DATA)")
-    m.add_argument("--people", type=int, help="walkers (default 3 for TUM, 6 spread along a KITTI drive)")
-    m.add_argument("--seed", type=int, default=0, help="random seed of the walkers: which people, where and how they walk (default: %(default)s)")
-    m.add_argument("--max-frames", type=int, metavar="N", help="composite only the first N frames")
-    m.set_defaults(fn=cmd_make_dynamic)
-
-
-def cmd_make_dynamic(args: argparse.Namespace) -> int:
-    from vslam.paths import data_root
-
-    def find(p: str) -> Path:
-        return Path(p) if Path(p).exists() or Path(p).is_absolute() else data_root() / p
-
-    from vslam.progress import progress_bar
-
-    with progress_bar("compositing", quiet=args.quiet) as bar:
-        out = make_dynamic(find(args.data), args.out, find(args.coco),
-                           walker_config(find(args.data), args.people, args.seed, args.max_frames), bar)
-    print(f"wrote {out}")
-    return 0

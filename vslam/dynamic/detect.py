@@ -10,7 +10,6 @@ column-major as COCO's) where the detector gives instance masks.
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
@@ -78,42 +77,3 @@ def coco_results(detector: Any, files: list[Path], threshold: float,
         if progress is not None:
             progress(n + 1, len(files))
     return out
-
-
-def add_cli(sub: argparse._SubParsersAction) -> None:
-    d = sub.add_parser("detect", help="detect people and vehicles on images; write COCO-format results (JSON)")
-    d.add_argument("images", nargs="+", help="image files or folders of images")
-    d.add_argument("--out", "-o", required=True, help="JSON file to write (a list of COCO result entries)")
-    d.add_argument("--model", default="", help="detector checkpoint, either format (default: the shipped YOLOX-nano, "
-                                               "the most accurate on photos; SLAM's default is slam.dynamic.weights)")
-    d.add_argument("--threshold", type=float, help="keep detections scoring at least this (default: SLAM's "
-                                                   "slam.dynamic.score_threshold)")
-    d.add_argument("--img-size", type=int, default=0, help="network input size, a multiple of 32 (0 = the size "
-                                                             "the model was made for)")
-    d.add_argument("--wide", action="store_true", help="YOLOX-style detectors: keep the image's aspect (--img-size "
-                                                      "its longer side) instead of a square input")
-    d.add_argument("--threads", type=int, default=2, help="CPU threads of the network")
-    d.set_defaults(fn=cmd_detect)
-
-
-def cmd_detect(args: argparse.Namespace) -> int:
-    import json
-
-    from vslam.dynamic.config import DynamicConfig
-    from vslam.dynamic.eval_detector import build_detector
-    from vslam.progress import progress_bar
-
-    threshold = DynamicConfig().score_threshold if args.threshold is None else args.threshold
-    if not 0 <= threshold <= 1:
-        raise ConfigError(f"--threshold is a score in [0, 1], got {threshold}")
-    files = image_files(args.images)
-    from vslam.dynamic.detector import photo_weights
-
-    det, _, name = build_detector(args.model or str(photo_weights()), False, args.threads, args.img_size, args.wide)
-    det.conf = min(det.conf, threshold)
-    with progress_bar("detecting", len(files), unit="image", quiet=args.quiet) as bar:
-        res = coco_results(det, files, threshold, bar)
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(res) + "\n")
-    print(f"{name}: {len(res)} detections on {len(files)} images -> {args.out}")
-    return 0

@@ -15,7 +15,6 @@ FastestDet's COCO car / bus / truck / motorcycle are all ``vehicle``; other clas
 
 from __future__ import annotations
 
-import argparse
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +22,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from vslam.dynamic.datasets import EVAL_CLASSES, Record, Split, class_index, load_records
+from vslam.dynamic.datasets import EVAL_CLASSES, Record, class_index
 from vslam.dynamic.metrics import detection_report, match
 from vslam.errors import ConfigError
 
@@ -186,47 +185,3 @@ def build_detector(model: str, teacher: bool, threads: int, img_size: int = 0,
     if wide:
         det.wide = True
     return det, DynamicConfig().score_threshold, f"{path.name}@{det.img_size}{' wide' if wide else ''}"
-
-
-def add_cli(sub: argparse._SubParsersAction) -> None:
-    e = sub.add_parser("eval-detector", help="AP, recall at the SLAM threshold and mask IoU of a detector on a labelled folder")
-    e.add_argument("data", help="folder in YOLO (COCO128), PASCAL (Penn-Fudan) or KITTI-object layout (auto-detected); "
-                                "relative paths also tried under $VSLAM_DATA")
-    e.add_argument("--split", default="val", choices=["val", "train", "all"], help="the fixed split (docs/detector-data.md)")
-    e.add_argument("--model", default="", help="detector checkpoint (default the shipped one); with --teacher an ONNX file")
-    e.add_argument("--teacher", action="store_true", help="evaluate FastestDet through onnxruntime (extra vslam[teacher])")
-    e.add_argument("--threshold", type=float, help="score threshold of recall / precision / mask IoU "
-                                                   "(default: SLAM's slam.dynamic.score_threshold; 0.5 for --teacher)")
-    e.add_argument("--img-size", type=int, default=0, help="our detector's input size (longer side; 0 = the size "
-                                                             "it was trained at, as slam.dynamic.img_size)")
-    e.add_argument("--wide", action="store_true", help="YOLOX-style detectors: keep the image's aspect (--img-size "
-                                                      "its longer side) instead of a square input")
-    e.add_argument("--threads", type=int, default=2, help="CPU threads of the network")
-    e.add_argument("--json", help="also write the report as JSON here")
-    e.set_defaults(fn=cmd_eval_detector)
-
-
-def cmd_eval_detector(args: argparse.Namespace) -> int:
-    import json
-
-    from vslam.paths import data_root
-    from vslam.progress import progress_bar
-
-    data = Path(args.data)
-    if not data.exists() and not data.is_absolute() and (data_root() / data).exists():
-        data = data_root() / data
-    split: Split = args.split
-    layout, records = load_records(data, split)
-    det, slam_threshold, name = build_detector(args.model, args.teacher, args.threads, args.img_size, args.wide)
-    threshold = slam_threshold if args.threshold is None else args.threshold
-    if not 0 <= threshold <= 1:
-        raise ConfigError(f"--threshold is a score in [0, 1], got {threshold}")
-    with progress_bar("detecting", len(records), unit="image", quiet=args.quiet) as bar:
-        preds = predict(det, records, bar)
-    rep = evaluate(records, preds, threshold)
-    rep.update(model=name, data=str(data), layout=layout, split=split)
-    print(f"{name} on {data} ({layout}, split {split}, {len(records)} images)")
-    print("\n".join(format_report(rep, name)))
-    if args.json:
-        Path(args.json).write_text(json.dumps(rep, indent=2) + "\n")
-    return 0

@@ -477,22 +477,3 @@ def _train(cfg: KeypointTrainConfig, dev, rank: int, n_ranks: int, progress: Pro
         save_convpoint(model, cfg.weights, meta)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
     return metrics
-
-
-def add_cli(train_sub) -> None:
-    from vslam.train_cli import add_train_parser
-
-    add_train_parser(train_sub, "keypoints", "train ConvPoint (synthetic shapes -> homographic adaptation -> joint)",
-                     "KeypointTrainConfig", "joint_steps=5000", "last.pt, pseudo.npz, model.pt, metrics.json", _cmd)
-
-
-def _cmd(args) -> int:
-    from vslam.train_cli import train_config
-
-    from vslam.progress import progress_bar
-
-    with progress_bar("training", unit="step", quiet=args.quiet) as bar:
-        metrics = train(train_config(KeypointTrainConfig, args), progress=bar)
-    if metrics:
-        print(json.dumps({k: metrics[k] for k in ("loss", "stage_s") if k in metrics} | {"eval": metrics.get("eval")}, indent=2))
-    return 0

@@ -345,22 +345,3 @@ def _train(cfg: PlaceTrainConfig, dev, rank: int, n_ranks: int, progress: Progre
         save_vladnet(model, cfg.weights, meta)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
     return metrics
-
-
-def add_cli(train_sub) -> None:
-    from vslam.train_cli import add_train_parser
-
-    add_train_parser(train_sub, "place", "train the VLADNet place descriptor (synthetic routes + KITTI + COCO + TUM)",
-                     "PlaceTrainConfig", "steps=3000", "last.pt, model.pt, metrics.json", _cmd)
-
-
-def _cmd(args) -> int:
-    from vslam.train_cli import train_config
-
-    from vslam.progress import progress_bar
-
-    with progress_bar("training", unit="step", quiet=args.quiet) as bar:
-        metrics = train(train_config(PlaceTrainConfig, args), progress=bar)
-    if metrics:  # under torchrun only rank 0 evaluates
-        print(json.dumps(metrics["eval"], indent=2))
-    return 0

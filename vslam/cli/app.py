@@ -312,37 +312,16 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--readme", default=None, metavar="FILE",
                    help="README whose bench-table markers get the headline rows (default: README.md beside --output; '' for none)")
     b.set_defaults(fn=cmd_bench)
-    from vslam.fusion.experiments import add_cli as add_fusion_cli
+    from vslam.cli import dynamic, features, fusion, train
 
-    add_fusion_cli(sub)
-    # `vslam train <model>`: each model's trainer adds its own subcommand from its own module
-    train_sub = sub.add_parser("train", help="train a network (detector, place, keypoints)").add_subparsers(dest="model", required=True)
-    from vslam.dynamic.train_cli import add_cli as add_detector_train_cli
-
-    add_detector_train_cli(train_sub)
-    from vslam.loop.train_place import add_cli as add_place_train_cli
-
-    add_place_train_cli(train_sub)
-    from vslam.features.train_keypoints import add_cli as add_keypoint_train_cli
-
-    add_keypoint_train_cli(train_sub)
-    from vslam.features.cli import add_cli as add_eval_features_cli
-
-    add_eval_features_cli(sub)
+    fusion.add_cli(sub)
+    train.add_cli(sub.add_parser("train", help="train a network (detector, place, keypoints)").add_subparsers(
+        dest="model", required=True))
+    features.add_cli(sub)
     # `vslam quantize <model>`: int8 ranges of a network for CPU inference (vslam.quantize)
-    quantize_sub = sub.add_parser("quantize", help="calibrate int8 CPU inference of a network (keypoints)").add_subparsers(dest="model", required=True)
-    from vslam.features.cli import add_quantize_cli
-
-    add_quantize_cli(quantize_sub)
-    from vslam.dynamic.composite import add_cli as add_make_dynamic_cli
-
-    add_make_dynamic_cli(sub)
-    from vslam.dynamic.eval_detector import add_cli as add_eval_detector_cli
-
-    add_eval_detector_cli(sub)
-    from vslam.dynamic.detect import add_cli as add_detect_cli
-
-    add_detect_cli(sub)
+    features.add_quantize_cli(sub.add_parser("quantize", help="calibrate int8 CPU inference of a network "
+                                             "(keypoints)").add_subparsers(dest="model", required=True))
+    dynamic.add_cli(sub)
     _add_quiet(p)
     return p
 
@@ -457,6 +436,3 @@ def _watch_sigint(seen: list[bool]) -> Any:
     except ValueError:
         return None
 
-
-if __name__ == "__main__":
-    sys.exit(main())
