@@ -1,8 +1,8 @@
-"""Post-training int8 quantisation of the convolutional networks for the CPU (issue 10).
+"""Post-training int8 quantisation of the convolutional networks for the CPU.
 
-Why: on 2 CPU threads the networks are most of the learned pipeline's time (ConvPoint's convolutions ~60 ms of
-its ~90 ms per 640x480 frame). Integer convolutions (FBGEMM / oneDNN, VNNI where the CPU has it) run the same
-layers ~3x faster; the keypoints and descriptors move a little (measured in ``models/README.md``).
+Why: on 2 CPU threads the networks are most of the learned pipeline's time. Integer convolutions (FBGEMM /
+oneDNN, VNNI where the CPU has it) run the same layers several times faster; the keypoints and descriptors move
+a little (``models/README.md``; docs/speed.md, 'Measurements behind settings in the code').
 
 Scheme: PyTorch's FX graph-mode static quantisation (``torch.ao.quantization``, backend "x86"): weights int8 per
 output channel (from the float weights, at load), activations uint8 per tensor with ranges chosen by a histogram

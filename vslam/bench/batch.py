@@ -1,4 +1,4 @@
-"""Fan benchmark jobs out (issue 10): one after another in fresh processes (the default: clean timings),
+"""Fan benchmark jobs out (batch evaluation): one after another in fresh processes (the default: clean timings),
 over a local process pool (``--jobs N``), or as Ray tasks on a cluster or a local Ray instance (``--ray``).
 
 A job is ``(kind, config, overrides, out_dir)`` as ``vslam.bench.jobs.execute_job`` takes it. Every job runs in a
@@ -139,7 +139,7 @@ def same_metrics(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> bool:
 
 def batch_row(config: str | None, overrides: dict[str, Any], grid: dict[str, list[Any]], workers: int,
               out_dir: str) -> dict[str, Any]:
-    """Issue 10's batch check: the grid's jobs serially, over a process pool and on a local Ray instance
+    """The batch-scaling check: the grid's jobs serially, over a process pool and on a local Ray instance
     (``workers`` each): wall seconds and whether every job's metrics equal the serial run's."""
     import time
 
@@ -210,7 +210,8 @@ def ab_jobs(config: str | None, overrides: dict[str, Any], grid: dict[str, list[
 
 def ab_result(grid: dict[str, list[Any]], results: list[dict[str, Any]]) -> dict[str, Any]:
     """Per grid point ATE of A and B (and local-mapping ms per keyframe), B/A, and the ratio of the means:
-    one seed's ratio moves by 10-20 % between nearby configurations, a mean over seeds much less."""
+    one seed's ratio moves a lot between nearby configurations, a mean over seeds much less
+    (docs/benchmarks-history.md, 'Measurements behind settings in the code')."""
     points = [", ".join(s) for s in grid_sets(grid)]
     out: dict[str, Any] = {"points": points, "ate_a": [], "ate_b": [], "kf_ms_a": [], "kf_ms_b": []}
     for a, b in zip(results[0::2], results[1::2]):

@@ -1,4 +1,4 @@
-"""Bench targets as machine checks (issue 42): evaluated on BENCHMARKS.json as written, no runs.
+"""Bench targets as machine checks: evaluated on BENCHMARKS.json as written, no runs.
 
 A row of ``configs/bench.yaml`` carries ``check:``, a list of comparisons of one number of its result
 (``BENCHMARKS.json`` ``rows.NAME.result``) with a value, or with a ratio (``ratio``, default 1) of another

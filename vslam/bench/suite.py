@@ -42,14 +42,14 @@ class BenchRow:
     check: tuple[Check, ...] = ()  # the target as machine checks (vslam.bench.checks), verdicts computed from the sidecar
     headline: str = ""  # non-empty: a row of the README's results table, this its short "what it measures"
     experiment: str = ""  # kind "fusion": a key of vslam.fusion.experiments.EXPERIMENTS
-    # kind "batch" (issue 10): the jobs are the grid's cartesian product of KEY: [values] on top of ``set``,
+    # kind "batch" (batch evaluation): the jobs are the grid's cartesian product of KEY: [values] on top of ``set``,
     # run serially, over a process pool and on a local Ray instance of ``workers`` each; wall times compared
     grid: dict[str, Any] = field(default_factory=dict)
     workers: int = 2
     # kind "ab": every grid point run without (A) and with (B) these KEY=VALUE overrides (``batch.ab_result``)
     treatment: tuple[str, ...] = ()
-    # kind "run" on composited people (issue 5): {data: TUM folder under $VSLAM_DATA, people: 3, seed: 0,
-    # coco: coco128}; ``vslam make-dynamic`` writes it once under <runs>/_data and dataset.path points there.
+    # kind "run" on composited people (dynamic-object filtering): {data: TUM folder under $VSLAM_DATA, people: 3,
+    # seed: 0, coco: coco128}; ``vslam make-dynamic`` writes it once under <runs>/_data and dataset.path points there.
     # Kind "ab" takes seeds: [..] instead of seed: one composite (other walkers) per grid point
     make_dynamic: dict[str, Any] = field(default_factory=dict)
 

@@ -132,7 +132,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     _summary(result, Path(cfg.output.dir))
     if result.error is not None:  # the outputs are written; what they lack (evaluation, a tracked pose) is an error
         raise result.error
-    if args.profile:  # issue 10: per-stage ms and peak memory, also written as profile.json
+    if args.profile:  # profiling: per-stage ms and peak memory, also written as profile.json
         from vslam.profiling import format_profile, write_profile
 
         print(format_profile(write_profile(result.paths["stats"], Path(cfg.output.dir) / "profile.json")))

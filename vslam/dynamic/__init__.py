@@ -1,4 +1,4 @@
-"""Dynamic-object filtering (issue 5): masks / boxes of moving objects and a geometric motion check decide which
+"""Dynamic-object filtering: masks / boxes of moving objects and a geometric motion check decide which
 keypoints reach tracking and mapping; the attention detector and its training live beside them.
 
 Names are resolved lazily (PEP 562) so that ``vslam.dynamic.detector`` / ``model`` load with torch, numpy and

@@ -1,11 +1,11 @@
-"""``vslam make-dynamic``: a dynamic RGB-D benchmark on real backgrounds (issue 5).
+"""``vslam make-dynamic``: a dynamic RGB-D benchmark on real backgrounds.
 
 COCO person cutouts (COCO128 instance polygons) become vertical 3-D billboards that walk on smooth paths
 through a real TUM RGB-D sequence; each frame is rendered with the ground-truth camera pose: the cutout is
 warped by the plane's homography, its per-pixel depth is the ray / plane intersection, and it is drawn only
 where it is nearer than the recorded depth (occlusion; invalid depth counts as far). Outputs the TUM layout
 (rgb/, depth/, rgb.txt, depth.txt, groundtruth.txt) plus masks/ (PNG, 255 on a visible person) and boxes.txt,
-so the same SLAM run on the clean and the composited frames gives the ATE ratio the issue asks for.
+so the same SLAM run on the clean and the composited frames gives the ATE ratio dynamic-object filtering is judged by.
 """
 
 from __future__ import annotations

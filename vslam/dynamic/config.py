@@ -1,4 +1,4 @@
-"""Settings of dynamic-object filtering (issue 5): which keypoints are dropped before tracking and mapping."""
+"""Settings of dynamic-object filtering: which keypoints are dropped before tracking and mapping."""
 
 from __future__ import annotations
 
@@ -79,19 +79,18 @@ class DynamicConfig:
     # ATE on the twelve TUM validation composites (docs/dynamic.md).
     score_threshold: float = 0.15
     # detector: the boxes of the frames of the last ``box_memory_s`` seconds are masked too (a person missed in
-    # one frame was found in one before; boxes move little in a fraction of a second). Same validation
-    # composite at score 0.2: ATE 0.0056 / 0.0075 / 0.0050 m with 0 / 0.15 / 0.27 s
+    # one frame was found in one before; boxes move little in a fraction of a second). Chosen on a validation
+    # composite (docs/dynamic.md, 'Measurements behind settings in the code')
     box_memory_s: float = 0.27
     # detector boxes also grow by this fraction of their size on each side: a small model's box edges are off by
-    # ~ a stride of its coarsest level, and a limb or a foot just outside the box leaks keypoints. Validation
-    # composites (walker seeds 1 / 2) at 0.05: round 3 of the detector 0.0064 / 0.0047 -> 0.0056 / 0.0045 m, the
-    # shipped round 4 0.0047 / 0.0044 -> 0.0057 / 0.0047 m (it boxes more generously): off
+    # ~ a stride of its coarsest level, and a limb or a foot just outside the box leaks keypoints. Off: the
+    # shipped detector boxes generously enough that growing cost accuracy on the validation composites
+    # (docs/dynamic.md, 'Measurements behind settings in the code')
     box_grow: float = 0.0
     # detector: run it on every n-th frame only (frame index divisible by n); the frames between mask the last
-    # detection's boxes (and the box memory), which saves (n-1)/n of the network's cost (~40 ms per frame on
-    # 2 CPU cores). But a held box misses a mover's leading edge. TUM walker validation composites 1-6, mean ATE
-    # at n = 1 / 2 / 3 / 4: 0.0048 / 0.0048 / 0.0048 / 0.0110 m; the synthetic dynamic room (faster camera) seeds
-    # 0 / 1 / 2 at n = 1 vs 2: 0.0045 / 0.0047 / 0.0044 vs 0.0126 / 0.0081 / 0.0031 m. Hence 1.
+    # detection's boxes (and the box memory), which saves (n-1)/n of the network's cost. But a held box misses a
+    # mover's leading edge, which costs accuracy where the camera moves fast. Hence 1 (docs/dynamic.md,
+    # 'Measurements behind settings in the code')
     detect_every: int = 1
     # detector: a box the detector stops finding is followed for up to this many seconds by the median motion of
     # the keypoints matched inside it from the previous frame (MedianFlow-like; the detector's box replaces it
@@ -104,11 +103,8 @@ class DynamicConfig:
     # more detector checkpoints whose boxes are masked too (an ensemble: the union of their boxes, each network
     # costs its own time). Recall is what masking needs: a person the detector misses leaks keypoints into the
     # map, and on TUM teddy composites with a close-up walker cut by the frame tracking then follows the walker.
-    # 12 validation composites (walker seeds 1-6, 12-17), mean / median / worst ATE mm: SE alone 7.1 / 5.3 / 24.4
-    # (6.6 / 5.1 / 13.6 at 0.15), SE + ESEA round 5 at score 0.2 6.3 / 5.2 / 15.5, at 0.25 6.1 / 5.0 / 13.4 (ESEA
-    # round 5 alone 15.0 / 5.1 / 106); held out (bench rows tum-teddy-people-detector-seeds*) 8.3 mm mean against
-    # 11.3 for either alone at 0.2 and 10.2 for SE at 0.15.
-    # Off by default: the mask step's network time doubles (one takes 4.5 ms on an H200 against issue 5's 5 ms)
+    # An SE + ESEA pair beat either alone on the validation and held-out composites. Off by default: the mask
+    # step's network time doubles (docs/dynamic.md, 'Measurements behind settings in the code')
     extra_weights: tuple[str, ...] = ()
     img_size: int = 0  # detector input: the image's longer side resized to this; 0 = the size it was trained at
     # YOLOX-style detectors: keep the frame's aspect (img_size its longer side, the shorter one rounded up to a

@@ -1,4 +1,4 @@
-"""Labelled detection folders for training and evaluation (issue 40): YOLO (COCO128), PASCAL-style Penn-Fudan
+"""Labelled detection folders for training and evaluation: YOLO (COCO128), PASCAL-style Penn-Fudan
 (boxes + per-instance masks) and KITTI object labels, each with a fixed train / val split.
 
 A record is one image with its boxes, read lazily (``Record.image()``, ``Record.masks()``): the evaluator streams

@@ -113,9 +113,9 @@ def default_weights() -> Path:
 
 def photo_weights() -> Path:
     """The detector ``vslam detect`` uses by default: the public YOLOX-nano converted to our network
-    (vslam/models/yolox_nano_slam.pt), far ahead of ``default_weights`` on real photos (person AP75 0.89 vs 0.37 on
-    the Penn-Fudan validation split) but behind it in SLAM, where it also boxes static people-like objects and
-    parked cars (models/README.md)."""
+    (vslam/models/yolox_nano_slam.pt), far ahead of ``default_weights`` on real photos but behind it in SLAM,
+    where it also boxes static people-like objects and parked cars (models/README.md; docs/detector-data.md,
+    'Measurements behind settings in the code')."""
     return shipped_model("yolox_nano_slam.pt")
 
 

@@ -1,4 +1,4 @@
-"""``vslam eval-detector DATA`` (issue 40): a detector on a labelled folder of real photos, in the terms SLAM cares
+"""``vslam eval-detector DATA``: a detector on a labelled folder of real photos, in the terms SLAM cares
 about. Person and vehicle AP50 / AP50-95 (COCO-style, ``metrics``), recall and precision at the score threshold
 SLAM masks with, and where the folder has instance masks (Penn-Fudan) the mask IoU of what SLAM masks.
 

@@ -1,5 +1,5 @@
-"""The detector ablation (issue 5, seed 003's none / SE / CBAM / ESEA): every weights file on the same held-out
-sets, AP50 / AP50-95 per class, parameters, and the cost of the mask step on a 640x480 frame.
+"""The detector ablation (dynamic-object filtering, seed 003's none / SE / CBAM / ESEA): every weights file on the
+same held-out sets, AP50 / AP50-95 per class, parameters, and the cost of the mask step on a 640x480 frame.
 
 The held-out sets are rebuilt from the recipe stored in the first checkpoint (``train``): COCO128 val2017, the
 dynamic benchmark's composited TUM frames 100-199 (its walkers' COCO images were never trained on), synthetic

@@ -165,9 +165,8 @@ class DynamicFilter:
         for a segment whose samples all lie on a dynamic object (masks/boxes, and the geometric check's regions),
         which is then neither tracked nor mapped. All, not most: a person's own edges lie inside its box, while a
         static edge that the person occludes ends at the silhouette and one crossing the background of a loose
-        box runs on outside it. Six TUM walker composites (seeds 0, 7-11), detector + lines, mean ATE: segments
-        not masked 0.0073 m, dropped when all samples are masked 0.0072 m, when most are 0.0108 m (static lines
-        near people lost); the validation composites (seeds 1-6) are the same to 0.1 mm either way."""
+        box runs on outside it; "most" loses the static lines near people (docs/dynamic.md, 'Measurements behind
+        settings in the code')."""
         raw = np.asarray(raw, dtype=np.float64).reshape(-1, 4)
         n = len(raw)
         if n == 0:

@@ -256,7 +256,7 @@ def decode(model: YoloDetector, feats: list[torch.Tensor]) -> tuple[torch.Tensor
 def fuse_for_inference(model: YoloDetector) -> YoloDetector:
     """An eval-mode copy for deployment: each Conv's BatchNorm folded into its convolution, weights in
     channels-last layout (the input of ``detector.to_tensor`` already is). Outputs equal up to float rounding
-    (~1e-5); on the CPU ~25 % less time (shipped model, 256x192 input, one thread: 25 -> 18.5 ms)."""
+    (~1e-5), and less time on the CPU (docs/speed.md, 'Small exact speed-ups quoted in code comments')."""
     from torch.nn.utils.fusion import fuse_conv_bn_eval
 
     m = copy.deepcopy(model).eval()

@@ -1,4 +1,4 @@
-"""Teacher pseudo-labels (issue 40): boxes the public FastestDet finds on training images where the labels have
+"""Teacher pseudo-labels: boxes the public FastestDet finds on training images where the labels have
 none, added as boxes without a mask.
 
 Our labelled sources leave objects out: COCO128 labels only some classes per image we train on, Penn-Fudan

@@ -1,5 +1,6 @@
-"""FastestDet (github.com/dog-qiuqiu/FastestDet, BSD-3), the public 0.24 M-parameter COCO-80 detector of issue 40,
-run through onnxruntime: a reference to beat and a teacher (pseudo-boxes, distillation), never the shipped model.
+"""FastestDet (github.com/dog-qiuqiu/FastestDet, BSD-3), the public 0.24 M-parameter COCO-80 detector of the
+detector-data comparison, run through onnxruntime: a reference to beat and a teacher (pseudo-boxes, distillation),
+never the shipped model.
 
 onnxruntime is the optional extra ``vslam[teacher]``, imported only when a teacher is built. The model file lives
 in the data folder (``$VSLAM_DATA/teachers/fastestdet/FastestDet.onnx``), not in the package.
@@ -21,7 +22,8 @@ from vslam.dynamic.detector import Detections
 from vslam.errors import ConfigError
 from vslam.nn.detectors.coco import COCO80
 
-# the score threshold the issue's comparison used for FastestDet (its recall "0.947 at 0.5")
+# the score threshold of the detector-data comparison of FastestDet (docs/detector-data.md, 'Measurements behind
+# settings in the code')
 TEACHER_THRESHOLD = 0.5
 
 

@@ -43,8 +43,8 @@ def load_alike(name: str, weights: str | Path = "") -> torch.nn.Module:
     model, ck = load_model(path, KEYPOINTS, "features.weights")
     if ck["arch"] != name:
         raise ConfigError(f"{path}: an {ck['arch']} checkpoint, but features.extractor is {name}")
-    # BatchNorm folded into the convolutions and NHWC layout: inference only; at half resolution on one thread
-    # ~1.4x faster than NCHW with BN (docs/features.md)
+    # BatchNorm folded into the convolutions and NHWC layout: inference only, faster on the CPU than NCHW with BN
+    # (docs/features.md)
     return model.fused().to(memory_format=torch.channels_last)
 
 

@@ -28,13 +28,10 @@ class FeatureConfig:
     # Poor light: when fewer than fast_retry_below x n_features corners pass fast_threshold on a low-contrast
     # image (5th to 95th intensity percentile less than low_contrast_spread grey levels apart), detection runs
     # again at fast_threshold_min and bucketing (strongest first in each cell) fills the cells that had none
-    # (ORB-SLAM's iniThFAST / minThFAST, per image instead of per cell). Synthetic corridor at 1/5 exposure +
-    # read noise (bench corridor-dim-rgbd, spread ~15): 146 corners a frame at 12, points-only tracking lost on
-    # 25 % of the frames, ATE 0.26 m -> 0.0066 m with the second pass. Not on every image short of corners: on
-    # the plain corridor (~1190 corners at 12) it gave ATE 0.0051 -> 0.0044 m but 34 -> 63 keyframes and 19.7 ->
-    # 8.5 frames/s; and a blurred image (few corners at full contrast, spread 160 on the blurred room) gets
-    # displaced ones: five sigma-8 blurred frames were "tracked" 80-94 mm off instead of predicted 4-13 mm off.
-    # Bright images spread 160-240 (TUM, KITTI, EuRoC, synthetic room), the plain corridor 56-77.
+    # (ORB-SLAM's iniThFAST / minThFAST, per image instead of per cell): it keeps tracking alive on a dim
+    # corridor. Not on every image short of corners: on a plain one it doubles the keyframes and halves the
+    # frame rate, and a blurred image (few corners at full contrast) gets displaced ones. Bright images spread
+    # well above low_contrast_spread (docs/features.md, 'Measurements behind settings in the code').
     # fast_threshold_min >= fast_threshold: off.
     fast_threshold_min: int = 5
     fast_retry_below: float = 0.5
@@ -42,16 +39,15 @@ class FeatureConfig:
     oversample: float = 3.0  # detect this many times n_features, then bucket
     grid_cols: int = 16
     grid_rows: int = 12
-    # extractor "convpoint" (the learned detector + descriptor, issue 4)
+    # extractor "convpoint" (the learned detector + descriptor)
     weights: str = ""  # "" = the shipped vslam/models/convpoint_v1.pt
     device: str = "auto"  # auto = CUDA when available
     conf_thresh: float = 0.005  # keypoint probability after NMS
     nms_radius: int = 4  # pixels
-    bf16: bool = False  # network in bfloat16 autocast: ~2x faster on CPUs with AVX512-BF16, not bit-identical
+    bf16: bool = False  # network in bfloat16 autocast: faster on CPUs with AVX512-BF16, not bit-identical
     # On the CPU, the network in int8 (``vslam.quantize``; ranges in <weights>.int8.json, made by `vslam quantize
-    # keypoints`; without them, or on CUDA, the float network runs): convolutions ~3x faster (network 22 vs 71 ms
-    # per 640x480 frame on 2 Xeon threads), keypoints and descriptors a little off the float ones (held-out pairs:
-    # matching score 0.742 vs 0.750, bench row keypoints-homography); SLAM ATE float vs int8: docs/features.md.
+    # keypoints`; without them, or on CUDA, the float network runs): faster convolutions, keypoints and
+    # descriptors a little off the float ones (docs/features.md, 'Measurements behind settings in the code').
     int8: bool = True
     # extractors alike-t / alike-s / alike-n: the network sees the image resized by this (0.5: a quarter of the
     # cost; two-view pose accuracy and speed per setting in docs/features.md). ``weights`` "" = the shipped

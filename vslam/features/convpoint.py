@@ -1,7 +1,8 @@
-"""ConvPoint: a light SuperPoint-style keypoint detector + descriptor (issue 4; seed 003 replaces ORB with it).
+"""ConvPoint: a light SuperPoint-style keypoint detector + descriptor (seed 003 replaces ORB with it).
 
-One shared encoder at 1/8 resolution (a stride-2 first layer: the full-resolution 3x3 layers of SuperPoint
-cost 80-200 ms per 640x480 frame on 2 CPU threads, this encoder ~30 ms), two heads:
+One shared encoder at 1/8 resolution (a stride-2 first layer: SuperPoint's full-resolution 3x3 layers cost
+several times this encoder on the CPU; docs/features.md, 'Measurements behind settings in the code'), two
+heads:
 
 * keypoints: 65 channels per 8x8 cell (64 pixel positions + "no keypoint"), softmax, depth-to-space -> a
   full-resolution heatmap (DeTone et al., "SuperPoint", CVPR-W 2018);
@@ -136,7 +137,8 @@ def heatmap(logits: torch.Tensor) -> torch.Tensor:
 
 def _window_max(x: torch.Tensor, radius: int) -> torch.Tensor:
     """(B,H,W) max over each (2r+1)^2 window (outside the image counts as -inf). On the CPU OpenCV's dilation
-    (~0.3 ms at 640x480, 100x a 9x9 torch max-pool there); on a GPU torch's max-pool."""
+    (much faster than torch's max-pool there; docs/features.md, 'Measurements behind settings in the code');
+    on a GPU torch's max-pool."""
     k = 2 * radius + 1
     if x.device.type == "cpu":
         kern = np.ones((k, k), np.uint8)
@@ -210,7 +212,7 @@ class DetectSettings:
     max_keypoints: int = 1500
     border: int = 8
     subpixel: bool = True
-    bf16: bool = False  # network in bfloat16 autocast (CPUs with AVX512-BF16, GPUs): ~2x faster, not bit-identical
+    bf16: bool = False  # network in bfloat16 autocast (CPUs with AVX512-BF16, GPUs): faster, not bit-identical
 
 
 @torch.inference_mode()
@@ -221,7 +223,7 @@ def detect_batch(model: ConvPointNet, images: list[np.ndarray], s: DetectSetting
     indices of the keypoints to keep among the NMS survivors (default: the ``max_keypoints`` strongest)."""
     dev = device or next(model.parameters(), torch.empty(0)).device
     x, (h, w) = batch_tensor(images)
-    x = x.to(dev).contiguous(memory_format=torch.channels_last)  # NHWC: ~1.7x faster convolutions on the CPU
+    x = x.to(dev).contiguous(memory_format=torch.channels_last)  # NHWC: faster convolutions on the CPU
     with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=s.bf16 and not isinstance(model, ConvPointInt8)):
         logits, desc = model(x)
     logits, desc = logits.float(), desc.float()  # sample_descriptors re-normalises what it samples

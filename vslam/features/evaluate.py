@@ -1,4 +1,4 @@
-"""``vslam eval-features``: ConvPoint against ORB and SIFT on the same pairs (issue 4, "Evaluation").
+"""``vslam eval-features``: ConvPoint against ORB and SIFT on the same pairs (learned keypoints, "Evaluation").
 
 Homography benchmark (SuperPoint §7 / HPatches protocol): every held-out real image (COCO128 from
 ``coco_split``, TUM teddy / KITTI 07 / EuRoC V1_01 frames from their splits -- never trained on) is warped by

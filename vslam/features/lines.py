@@ -26,7 +26,7 @@ from vslam.data.types import PinholeCamera
 
 @dataclass(frozen=True)
 class LineConfig:
-    """Line features (issue 6). ``enabled``: False keeps the point-only system unchanged (the default)."""
+    """Line features. ``enabled``: False keeps the point-only system unchanged (the default)."""
 
     enabled: bool = False
     min_length_px: float = 30.0  # shorter segments carry little direction and are unstable across frames
@@ -34,8 +34,8 @@ class LineConfig:
     n_along: int = 9  # descriptor samples along the segment
     n_bands: int = 5  # descriptor bands across it ...
     band_px: float = 2.0  # ... each this wide
-    # L2 distance of unit descriptors; measured on the synthetic room (shifted copy): correct pairs median 0.12,
-    # 90 % below 0.25; random pairs 1st / 10th percentile 0.10 / 0.21 (the geometric gates do the rest)
+    # L2 distance of unit descriptors: above most correct pairs, the geometric gates do the rest
+    # (distributions on the synthetic room: docs/lines.md, 'Measurements behind settings in the code')
     max_desc_dist: float = 0.3
     match_angle_deg: float = 8.0  # oriented angle difference allowed in matching
     match_radius_px: float = 12.0  # end points of a candidate within this distance of the predicted line
@@ -49,21 +49,18 @@ class LineConfig:
     max_new_lines: int = 60  # line landmarks created per keyframe
     # create lines only where the depth on both sides of the segment agrees: an occluding contour of a curved
     # object (TUM teddy's bear) is no fixed 3-D line, and Kinect depth bleeds there. Off: it also rejects the
-    # crease lines (wall/floor) that carry the corridor. Measured ATE off / on: TUM teddy 0.0080 / 0.0062 m
-    # (points only 0.0060), corridor 0.0051 / 0.0090 m (points only 0.0087).
+    # crease lines (wall/floor) that carry the corridor (docs/lines.md, 'Measurements behind settings in the code').
     surface_only: bool = False
     # the same without losing creases: each side's depth (2 and 4 px off the segment) extrapolated linearly to
     # the segment; a crease's two surfaces meet there, an occluding contour's do not (sides without depth: not
     # judged). Chosen on TUM teddy with lines at several ORB budgets, the corridor unchanged (docs/lines.md).
     reject_contours: bool = True
-    # most-observed map lines put into one local BA; the line share of BA time scales with it. Synthetic
-    # corridor, ATE 120 / 300 frames: 150 -> 3.41 mm / 7.1 mm, 60 -> 3.29 / 5.1 mm, 40 -> - / 7.4 mm (points
-    # only 4.41 / 8.7 mm); BA CPU time with / without lines on the same problems: 60 -> 1.58x, 40 -> 1.45x
+    # most-observed map lines put into one local BA; the line share of BA time scales with it. Chosen on the
+    # synthetic corridor, accuracy against BA time (docs/lines.md, 'Measurements behind settings in the code')
     ba_max_lines: int = 60
     # A line joins local BA once this many of the window's keyframes see it; 0 = 3 for monocular, 2 otherwise.
-    # A monocular two-view line is weak until a third view confirms it: KITTI 07 mono with lines / points only
-    # at 1800 / 2000 / 2200 ORB features 1.11 / 1.03 / 0.99 -> 1.02 / 1.01 / 1.00 (mean 1.04x -> 1.01x). Not
-    # for the others: stereo corridor seeds 0-3 0.78x -> 0.92x of points only (RGB-D 0.94x -> 0.91x).
+    # A monocular two-view line is weak until a third view confirms it; not for the others, where 2 views
+    # gave the better ATE (docs/lines.md, 'Measurements behind settings in the code').
     ba_min_views: int = 0
     weight: float = 1.0  # pose-only: line residual weight relative to points
     # RGB-D: each observed end point also measures its depth (the segment's depth samples, each side
@@ -81,8 +78,8 @@ class LineConfig:
     stereo_depth_sigma_px: float = 0.2
     stereo_min_epi_angle_deg: float = 20.0
     # RGB-D line creation reads each side's depth extrapolated to the segment, as the depth rows do, instead of
-    # the nearer side 2 px off (centimetres nearer than the segment on a wall seen at a slant): corridor seeds 4-7
-    # without depth rows 0.0049 -> 0.0045 m, with them (0.1 px, then in tracking only) 0.0050 -> 0.0043 m
+    # the nearer side 2 px off (centimetres nearer than the segment on a wall seen at a slant): docs/lines.md,
+    # 'Measurements behind settings in the code'
     create_extrapolate: bool = True
     # where new line landmarks come from: "depth" (RGB-D: the depth map along the segment; stereo: the end-point
     # depths the rig measured, ``stereo_depth_sigma_px``), "two_view" (a new keyframe's segments matched to a
@@ -94,8 +91,8 @@ class LineConfig:
     tri_min_epi_angle_deg: float = 5.0  # two-view: a segment must cross the epipolar lines at least this steeply
     tri_min_angle_deg: float = 2.0  # ... and the two back-projected planes meet at least at this angle
     # ... and each end point is seen from the two centres at this angle. Chosen on the stereo corridor's
-    # validation seeds 1 / 2 (the bench row is seed 0): ATE 1 deg 0.0095 / 0.0119 m, 2 deg 0.0089 / 0.0084,
-    # 3 deg 0.0091 / 0.0073 (points only 0.0078 / 0.0095); at 1 deg far end points tilted corridor-long lines
+    # validation seeds; at smaller angles far end points tilted corridor-long lines (docs/lines.md, 'Measurements
+    # behind settings in the code')
     tri_min_parallax_deg: float = 3.0
     two_view_min_obs: int = 3  # a two-view line still seen by fewer keyframes ``cull_age`` keyframes later goes
     cull_age: int = 3

@@ -101,9 +101,9 @@ def _mutual_binary(d1: np.ndarray, d2: np.ndarray, ratio: float | None, max_dist
 
 def _mutual_float(d1: np.ndarray, d2: np.ndarray, ratio: float | None, max_l2: float) -> np.ndarray:
     """``match_mutual`` for float descriptors from one (N1,N2) matrix product, squared L2 = |a|^2 + |b|^2 - 2 a.b:
-    both directions read the same matrix (OpenCV's brute force matcher computes every distance once per direction:
-    ~100 vs ~21 ms at loop verification's 2500 x 1000 x 128 on 2 cores, ~21 vs ~3 ms at 300 x 900). Ties go to
-    the lower index."""
+    both directions read the same matrix (OpenCV's brute force matcher computes every distance once per direction,
+    several times slower; docs/speed.md, 'Small exact speed-ups quoted in code comments'). Ties go to the lower
+    index."""
     a = np.ascontiguousarray(d1, dtype=np.float32)
     b = np.ascontiguousarray(d2, dtype=np.float32)
     D = a @ b.T
@@ -116,7 +116,7 @@ def _mutual_float(d1: np.ndarray, d2: np.ndarray, ratio: float | None, max_l2: f
     D[r, j1] = np.inf
     d2nd = D[r, D.argmin(axis=1)]
     D[r, j1] = d1st
-    # each column's nearest row, the lowest on ties (argmin down the columns is ~20x slower: strided)
+    # each column's nearest row, the lowest on ties (argmin down the columns is much slower: strided)
     rows, cols = np.nonzero(D == D.min(axis=0))
     _, first = np.unique(cols, return_index=True)
     bwd = np.full(len(b), -1, np.int64)
@@ -171,7 +171,7 @@ def match_by_projection(
 
 def _best_pairs_binary(valid: np.ndarray, ki: np.ndarray, pt_desc: np.ndarray, kp_desc: np.ndarray, max_dist: float,
                        ratio: float | None) -> np.ndarray:
-    """``best_pairs`` on the (P,k) candidate grid of binary descriptors, same result, ~3x faster: Hamming
+    """``best_pairs`` on the (P,k) candidate grid of binary descriptors, same result, faster: Hamming
     distances by 64-bit popcount, and each row's best / second best from one partition of the key
     distance * (N+1) + target (integer distances, so ties still break by target index)."""
     n = len(kp_desc)
@@ -289,8 +289,8 @@ def match_epipolar(
         return empty
     lines = np.c_[uv_a, np.ones(len(uv_a))] @ F_ba.T  # (Na,3) epipolar line in b of each a
     lines /= np.maximum(np.linalg.norm(lines[:, :2], axis=1), 1e-12)[:, None]
-    # The band test is the bulk of the work (Na x Nb ~ 3M on KITTI keyframes): in float32 and in blocks of rows
-    # that stay in cache, ~3x faster than one float64 (Na,Nb) matrix. A pair within ~1e-4 px of the band's edge may
+    # The band test is the bulk of the work (Na x Nb in the millions on KITTI keyframes): in float32 and in blocks
+    # of rows that stay in cache, faster than one float64 (Na,Nb) matrix. A pair within ~1e-4 px of the band's edge may
     # fall the other way than in float64 (the same input still gives the same pairs).
     n_rows, la, lc = _EPI_BLOCK, lines[:, :2].astype(np.float32), lines[:, 2:3].astype(np.float32)
     ub, tb = np.ascontiguousarray(uv_b[cols].T, dtype=np.float32), tol[cols].astype(np.float32)[None, :]
@@ -300,7 +300,7 @@ def match_epipolar(
         dist = la[s:s + n_rows] @ ub  # (rows,Nc) pixels from each line
         dist += lc[s:s + n_rows]
         np.abs(dist, out=dist)
-        # flat indices: a 1-D nonzero is ~6x faster than the 2-D one (two index arrays)
+        # flat indices: a 1-D nonzero is several times faster than the 2-D one (two index arrays)
         flat.append(np.flatnonzero(dist <= tb) + s * n_c)  # sorted by row, then column
     ia, jc = np.divmod(np.concatenate(flat), n_c)
     jb = cols[jc]

@@ -3,8 +3,8 @@
 Each image is a smooth noisy background with filled polygons, line segments, stars, a warped checkerboard and
 corner-free ellipses drawn over each other. The label of every shape is its set of geometric corners (polygon
 vertices, segment ends, star centres and tips, checkerboard vertices); a corner covered by a later shape is
-removed, so labels are what is visible. Drawn with OpenCV, ~1 ms per 160x120 image, seeded by the caller's
-generator.
+removed, so labels are what is visible. Drawn with OpenCV (its cost per image: docs/speed.md,
+'Small exact speed-ups quoted in code comments'), seeded by the caller's generator.
 """
 
 from __future__ import annotations

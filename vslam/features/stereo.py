@@ -108,9 +108,9 @@ def _refine(img_l: np.ndarray, img_r: np.ndarray, xl: np.ndarray, y: np.ndarray,
     interior = (best > 1) & (best < len(offs) - 2)
     r = np.arange(len(idx))
     d0, dm, dp = d[r, best], d[r, best - 1], d[r, best + 1]
-    # ORB-SLAM2's parabola. Its vertex is pulled towards the integer offset (median 0.08 px on a texture
-    # shifted by 10.4 px, tests/features/test_stereo.py); the equiangular (V) fit SAD suggests measured
-    # 0.07 px there but 10 % worse depths on the synthetic rig, so the parabola stays.
+    # ORB-SLAM2's parabola. Its vertex is pulled towards the integer offset (tests/features/test_stereo.py);
+    # the equiangular (V) fit SAD suggests gave worse depths on the synthetic rig, so the parabola stays
+    # (docs/features.md, 'Measurements behind settings in the code').
     den = 2.0 * (dm + dp - 2.0 * d0)
     with np.errstate(divide="ignore", invalid="ignore"):
         delta = np.where(den > 0, (dm - dp) / den, np.nan)

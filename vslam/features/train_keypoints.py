@@ -1,4 +1,4 @@
-"""``vslam train keypoints``: ConvPoint trained in SuperPoint's three stages from images we hold (issue 4).
+"""``vslam train keypoints``: ConvPoint trained in SuperPoint's three stages from images we hold.
 
 1. **shapes** -- the keypoint head alone on synthetic shapes with exact corners (``features.shapes``), each
    image seen through a random homography and photometric change (MagicPoint).

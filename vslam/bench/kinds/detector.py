@@ -14,7 +14,8 @@ from vslam.errors import ConfigError
 
 
 def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
-    """Issue 5: the attention ablation (``set``: weights=[files], all trained with one recipe; ``dynamic.evaluate``)."""
+    """Dynamic-object filtering: the attention ablation (``set``: weights=[files], all trained with one recipe;
+    ``dynamic.evaluate``)."""
     from vslam.dynamic.evaluate import evaluate_detectors
 
     t0 = time.perf_counter()
@@ -26,14 +27,14 @@ def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str
 
 
 def table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
-    """Issue 5: detectors on the held-out sets (the attention ablation: one recipe, one seed)."""
+    """Dynamic-object filtering: detectors on the held-out sets (the attention ablation: one recipe, one seed)."""
     from vslam.dynamic.evaluate import format_table
 
     return report_tables(rows, "## Dynamic-object detector (`{name}`)", format_table)
 
 
 def job_eval(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
-    """Issue 40: ``vslam eval-detector`` over several labelled folders. ``set``: data=[folder:split, ...] (under
+    """Detector data: ``vslam eval-detector`` over several labelled folders. ``set``: data=[folder:split, ...] (under
     $VSLAM_DATA), model (checkpoint; "" = the shipped one) or teacher=true (FastestDet), img_size, threads ->
     {"sets": {"<folder's first part>-<split>": the evaluator's report}}."""
     from vslam.dynamic.eval_detector import build_detector, evaluate, predict
@@ -58,7 +59,7 @@ def job_eval(config: str | None, overrides: dict[str, Any], out_dir: str) -> dic
 
 
 def eval_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
-    """Issue 40: a detector on the real validation splits (``vslam eval-detector``), one table per folder."""
+    """Detector data: a detector on the real validation splits (``vslam eval-detector``), one table per folder."""
     from vslam.dynamic.eval_detector import format_report
 
     def tables(r: dict[str, Any]) -> list[str]:

@@ -12,7 +12,7 @@ from vslam.childproc import peak_rss_mb
 
 
 def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
-    """Issue 4: ConvPoint vs ORB vs SIFT on the same held-out pairs (``set``: keypoints, pairs, images, seed,
+    """Learned keypoints: ConvPoint vs ORB vs SIFT on the same held-out pairs (``set``: keypoints, pairs, images, seed,
     weights=<file>; ``features.evaluate``)."""
     import torch
 
@@ -29,7 +29,7 @@ def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str
 
 
 def table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
-    """Issue 4: the homography benchmark and epipolar inliers, ConvPoint vs ORB vs SIFT in one run."""
+    """Learned keypoints: the homography benchmark and epipolar inliers, ConvPoint vs ORB vs SIFT in one run."""
     from vslam.features.evaluate import format_table
 
     return report_tables(rows, "## Keypoints: ConvPoint vs ORB vs SIFT (`{name}`)", format_table)

@@ -12,7 +12,7 @@ from vslam.childproc import peak_rss_mb
 
 
 def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
-    """Issue 8: real-IMU preintegration error/NEES from ground-truth states, and the static window (``set``:
+    """Inertial: real-IMU preintegration error/NEES from ground-truth states, and the static window (``set``:
     data=<folder under $VSLAM_DATA>, lengths=[...], static_window_s, noise_scale, align_spans=[...])."""
     from vslam.inertial.evaluate import evaluate_euroc_imu
     from vslam.paths import data_root
@@ -26,7 +26,7 @@ def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str
 
 
 def table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
-    """Issue 8 real-IMU numbers: one line per window length, then the static-window line per row."""
+    """Inertial, real-IMU numbers: one line per window length, then the static-window line per row."""
     if not rows:
         return []
     lines = md_section("IMU preintegration on real data",

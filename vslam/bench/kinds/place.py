@@ -12,7 +12,7 @@ from vslam.childproc import peak_rss_mb
 
 
 def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
-    """Issue 7: recall@1/5/10 of the place descriptors (``set``: descriptors=[bow, vladnet], weights=<file>,
+    """Place recognition: recall@1/5/10 of the place descriptors (``set``: descriptors=[bow, vladnet], weights=<file>,
     seed=<held-out synthetic route>, tum=<folder under $VSLAM_DATA>) and the keyframe database's cost at 10k."""
     from vslam.loop.descriptor import default_vladnet_path
     from vslam.loop.retrieval import bow_describer, database_costs, evaluate_held_out, held_out_sets, vladnet_describer
@@ -32,7 +32,8 @@ def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str
 
 
 def table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
-    """Issue 7 retrieval: recall@k per evaluation set and descriptor, then the database cost at 10k keyframes."""
+    """Place recognition, retrieval: recall@k per evaluation set and descriptor, then the database cost at 10k
+    keyframes."""
     if not rows:
         return []
     lines = md_section("Place recognition",

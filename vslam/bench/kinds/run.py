@@ -29,7 +29,7 @@ def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str
     if res.eval is not None:
         row["ate_rmse"] = res.eval.ate.translation.rmse
         row["align"] = res.eval.alignment.method
-        if res.eval.alignment.method == "sim3":  # issue 8: the fitted scale says how metric a mono(-inertial) run is
+        if res.eval.alignment.method == "sim3":  # inertial: the fitted scale says how metric a mono(-inertial) run is
             row["align"] += f" (s={res.eval.alignment.s:.4f})"
         row["path_m"] = res.eval.gt_length_m
         first = res.eval.rpe[0] if res.eval.rpe else None
@@ -37,7 +37,7 @@ def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str
             row["rpe_t"] = first.translation.rmse
             row["rpe_r"] = first.rotation_deg.rmse
             row["rpe_delta"] = first.label
-    # issue 38: frames with no pose (between maps), maps started, and each map's own ATE when they never merged
+    # several maps: frames with no pose (between maps), maps started, and each map's own ATE when they never merged
     status = [str(r.get("status", "")) for r in res.stats]
     row["lost"] = status.count("lost")
     row["new_maps"] = status.count("new_map")
@@ -54,7 +54,7 @@ def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str
         row["maps"] = {str(m): {"frames": int(np.sum(ids == m)), "ate_rmse": e.ate.translation.rmse}
                        for m, e in sorted(res.map_evals.items())}
     row.update(stage_times(Path(out_dir) / "stats.csv"))
-    # issue 41, long runs: does a frame cost more once the map is large? Medians of the first and last 500 frames
+    # long runs: does a frame cost more once the map is large? Medians of the first and last 500 frames
     totals = [float(r["ms_total"]) for r in res.stats if r.get("ms_total") not in (None, "")]
     if len(totals) >= 1000:
         row["ms_first500"], row["ms_last500"] = float(np.median(totals[:500])), float(np.median(totals[-500:]))
@@ -120,7 +120,7 @@ def job_render(config: str | None, overrides: dict[str, Any], out_dir: str) -> d
 
 
 def stage_table(entries: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
-    """Per-stage milliseconds (issue 3: features, matching, pose, BA) of the rows whose runs wrote stats.csv."""
+    """Per-stage milliseconds (features, matching, pose, BA) of the rows whose runs wrote stats.csv."""
     timed = [(row, e["result"]["stages"], e["result"].get("keyframes")) for row, e in entries
              if row.kind == "run" and "error" not in e["result"] and e["result"].get("stages")]
     if not timed:

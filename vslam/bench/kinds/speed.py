@@ -10,7 +10,7 @@ from vslam.bench.tables import fmt, md_failed_row, md_section
 
 
 def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
-    """Issue 10: the learned front end's networks, ms per frame on one device (``profiling.network_speed``;
+    """Speed: the learned front end's networks, ms per frame on one device (``profiling.network_speed``;
     ``set``: device, frames, repeats, threads). device=cuda on a machine without a GPU is skipped, not failed:
     the row keeps what a GPU machine measured."""
     import torch
@@ -25,7 +25,7 @@ def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str
 
 
 def table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
-    """Issue 10: the learned front end's networks per device, one table for all such rows."""
+    """Speed: the learned front end's networks per device, one table for all such rows."""
     from vslam.profiling import format_speed
 
     if not rows:
@@ -50,7 +50,8 @@ def job_line_ba(config: str | None, overrides: dict[str, Any], out_dir: str) -> 
 
 
 def line_ba_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
-    """Issue 6: back-end CPU of lines, each local BA solved without and with its lines (``profiling.line_ba_cost``)."""
+    """Line features: back-end CPU of lines, each local BA solved without and with its lines
+    (``profiling.line_ba_cost``)."""
     if not rows:
         return []
     lines = md_section("Back-end cost of lines (`line_ba`)",

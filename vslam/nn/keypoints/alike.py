@@ -58,8 +58,9 @@ class Residual(nn.Module):
 def nms(scores: torch.Tensor, radius: int) -> torch.Tensor:
     """(B,1,H,W) -> the same with every value zeroed that is not a local maximum in a (2r+1)^2 window; two further
     rounds let a maximum that was only suppressed by a suppressed neighbour come back (SuperPoint's NMS, as the
-    published ALIKE code runs it). On the CPU with OpenCV's dilation (the same maxima; ~10x faster than torch's
-    max pooling on one core, where this step cost more than the network at half resolution)."""
+    published ALIKE code runs it). On the CPU with OpenCV's dilation (the same maxima, much faster than torch's
+    max pooling, which cost more than the network at half resolution; docs/speed.md, 'Small exact speed-ups
+    quoted in code comments')."""
     if scores.device.type == "cpu" and scores.dtype == torch.float32:
         return torch.from_numpy(np.stack([_nms_cv(s, radius) for s in scores[:, 0].numpy()]))[:, None]
 
