@@ -171,7 +171,7 @@ def test_keypoint_checkpoint_of_another_shape_is_one_line(cli, tum40, tmp_path):
 
 def test_resume_state_of_another_shape_is_one_line(cli, tmp_path):
     """A keypoint trainer's ``last.pt`` whose descriptor head has another size than the --toy network's."""
-    from tests.test_checkpoints import TINY_POINT, _keypoint_last
+    from tests.nn.test_checkpoint import TINY_POINT, _keypoint_last
 
     out = tmp_path / "run"
     out.mkdir()

@@ -1,7 +1,7 @@
 """Issue 39's fault table, cases 5-16, through the command line on 40-frame copies of the real subsets: every
 user mistake is one line on stderr with exit 2 (never a traceback), every fault the run can survive leaves its
 trajectory written and says what went wrong. The IMU cases (1-3) are in tests/inertial/test_imu_gating.py, the
-checkpoint cases (4, 11) in tests/test_checkpoints.py and below."""
+checkpoint cases (4, 11) in tests/nn/test_checkpoint.py and below."""
 
 from __future__ import annotations
 

@@ -14,7 +14,7 @@ from vslam.tracking.slam import SlamConfig, SlamTracker
 CP = {"features": {"extractor": "convpoint"}}
 # vslam/models/convpoint_v1.pt in int8 (the CPU default, features.int8) measured 0.0064 m (float: 0.0044 m)
 ATE_SYNTH_STEREO = 0.009
-ATE_TUM_60 = 0.006  # measured 0.0032 m in int8, 0.0037 m float (ORB: 0.0034 m, tests/tracking/test_slam_real.py)
+ATE_TUM_60 = 0.006  # measured 0.0032 m in int8, 0.0037 m float (ORB: 0.0034 m, tests/e2e/test_slam_real.py)
 
 
 def _run(seq, sensor, tmp_path, n, align="se3", slam=None):
