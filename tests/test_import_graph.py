@@ -1,6 +1,6 @@
 """The import graph of the package: no cycles between modules and no import from a lower layer into a higher one
-(module level or inside a function: a function-local import is still a dependency). The few that remain are
-listed below with where they go; the list may only shrink."""
+(module level or inside a function: a function-local import is still a dependency); and only the CLI prints.
+An exception would have to be listed below with where it goes; the lists may only shrink."""
 
 from __future__ import annotations
 

@@ -66,7 +66,9 @@ class SlamConfig:
     atlas: AtlasConfig = field(default_factory=AtlasConfig)
 
 
-__all__ = ["FrameView", "FrontEnd", "SlamConfig", "SlamTracker", "write_map_ply"]  # FrameView, FrontEnd: vslam.tracking.frontend
+# FrameView and FrontEnd live in vslam.tracking.frontend; named here too because viewers and the front-end
+# process meet them as what SlamTracker gives
+__all__ = ["FrameView", "FrontEnd", "SlamConfig", "SlamTracker", "write_map_ply"]
 
 
 class SlamTracker:
