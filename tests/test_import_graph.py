@@ -5,7 +5,6 @@ An exception would have to be listed below with where it goes; the lists may onl
 from __future__ import annotations
 
 import ast
-from collections import defaultdict
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1] / "vslam"
