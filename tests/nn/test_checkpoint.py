@@ -388,7 +388,6 @@ def test_no_full_unpickler_in_the_package():
 # ---- the registry's format: {arch, conf, state_dict, meta} ----
 
 def _toy_registry():
-    from tests.nn.test_registry import Tiny  # noqa: F401 (the target below)
     from vslam.nn.registry import Registry
 
     r = Registry("toy net")

@@ -100,7 +100,6 @@ def test_run_limits_numpy_blas_threads_and_the_ba_worker_follows():
     from vslam.backend.worker import BAWorker
     from vslam.pipeline import blas_threads
     from vslam.runtime import RuntimeConfig
-    from vslam.tracking.slam import SlamConfig
 
     def counts():
         return [i["num_threads"] for i in threadpool_info() if i.get("user_api") == "blas"]
