@@ -143,7 +143,7 @@ def _check_multi_map_outputs(res, out) -> None:
     import json
     from contextlib import redirect_stdout
 
-    from vslam.cli import _summary
+    from vslam.cli.app import _summary
 
     assert res.scored_map == 0 and res.n_frames == 70
     text = io.StringIO()

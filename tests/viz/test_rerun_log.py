@@ -38,7 +38,7 @@ def test_viewer_off_never_imports_rerun(tmp_path):
 
 
 def test_cli_flags_set_the_viewer_config():
-    from vslam.cli import _viewer_overrides, build_parser
+    from vslam.cli.app import _viewer_overrides, build_parser
 
     args = build_parser().parse_args(["demo", "--viewer", "--rrd", "x.rrd", "--serve"])
     assert _viewer_overrides(args) == {"output": {"viewer": {"spawn": True, "serve": True, "rrd": "x.rrd"}}}
