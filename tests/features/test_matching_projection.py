@@ -19,6 +19,16 @@ def test_hamming_pairs_equals_the_byte_table():
         np.testing.assert_array_equal(got, hamming_rows(a[ia], b[jb]))
 
 
+def _candidates(kp_uv: np.ndarray, pred: np.ndarray, radius: float) -> tuple[cKDTree, np.ndarray, np.ndarray]:
+    """The keypoints within ``radius`` of each prediction as ``match_by_projection`` finds them: (tree, valid
+    (P,k) bool, ki (P,k) keypoint indices)."""
+    tree = cKDTree(kp_uv)
+    k = min(16, len(kp_uv))
+    d, ki = tree.query(pred, k=k, distance_upper_bound=radius)
+    d, ki = d.reshape(len(pred), k), ki.reshape(len(pred), k)
+    return tree, np.isfinite(d) & (d <= radius), ki
+
+
 def test_best_pairs_binary_equals_best_pairs_on_the_tree_grid():
     """Ties included: few distinct descriptors, keypoints on a coarse lattice (equal pixel distances)."""
     rng = np.random.default_rng(1)
@@ -32,11 +42,7 @@ def test_best_pairs_binary_equals_best_pairs_on_the_tree_grid():
         pred = rng.uniform(0, 40, (p, 2))
         radius = float(rng.choice([2.0, 4.0, 9.0]))
         ratio = None if trial % 4 == 0 else 0.9
-        tree = cKDTree(kp_uv)
-        k = min(16, n)
-        d, ki = tree.query(pred, k=k, distance_upper_bound=radius)
-        d, ki = d.reshape(p, k), ki.reshape(p, k)
-        valid = np.isfinite(d) & (d <= radius)
+        tree, valid, ki = _candidates(kp_uv, pred, radius)
         if not valid.any():
             continue
         qi, ti = np.nonzero(valid)[0], ki[valid].astype(np.int64)
@@ -62,11 +68,7 @@ def test_best_pairs_float_equals_best_pairs_on_the_tree_grid():
         radius = float(rng.choice([2.0, 4.0, 9.0]))
         ratio = None if trial % 4 == 0 else 0.9
         max_dist = float(rng.choice([np.inf, 64.0]))
-        tree = cKDTree(kp_uv)
-        k = min(16, n)
-        d, ki = tree.query(pred, k=k, distance_upper_bound=radius)
-        d, ki = d.reshape(p, k), ki.reshape(p, k)
-        valid = np.isfinite(d) & (d <= radius)
+        tree, valid, ki = _candidates(kp_uv, pred, radius)
         if not valid.any():
             continue
         qi, ti = np.nonzero(valid)[0], ki[valid].astype(np.int64)
