@@ -152,29 +152,29 @@ class SlamTracker:
     def _stage(self, name: str) -> Stage | None:
         return next((s for s in self.stages if s.name == name), None)
 
+    def _part(self, stage: str, attr: str):
+        st = self._stage(stage)
+        return getattr(st, attr) if st is not None else None
+
     @property
     def vio(self):
         """The visual-inertial state (``vslam.tracking.vio.Vio``), None without an IMU."""
-        st = self._stage("inertial")
-        return st.vio if st is not None else None  # type: ignore[attr-defined]
+        return self._part("inertial", "vio")
 
     @property
     def lines(self):
         """The line map of the current map (``vslam.mapping.line_map.LineSlam``), None with lines off."""
-        st = self._stage("lines")
-        return st.lines if st is not None else None  # type: ignore[attr-defined]
+        return self._part("lines", "lines")
 
     @property
     def dynamic(self):
         """The dynamic-object filter (``vslam.dynamic.DynamicFilter``), None when off."""
-        st = self._stage("dynamic")
-        return st.dynamic if st is not None else None  # type: ignore[attr-defined]
+        return self._part("dynamic", "dynamic")
 
     @property
     def dense(self):
         """The RGB-D depth tracker (``vslam.tracking.dense.DenseOdometry``), None when off."""
-        st = self._stage("dense")
-        return st.dense if st is not None else None  # type: ignore[attr-defined]
+        return self._part("dense", "dense")
 
     # -- per-frame --------------------------------------------------------------
     def frontend(self, frame: Frame) -> FrontEnd:
