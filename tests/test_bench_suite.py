@@ -18,7 +18,7 @@ SUITE = ROOT / "configs" / "bench.yaml"
 def _pipeline_rows():
     if not SUITE.is_file():
         return []
-    return [r for r in load_suite(SUITE).rows if r.kind in ("run", "ab", "batch") and r.config]
+    return [r for r in load_suite(SUITE).rows if r.kind in ("run", "ab", "batch", "sfm") and r.config]
 
 
 @pytest.mark.skipif(not SUITE.is_file(), reason="no configs/bench.yaml (installed package, not a checkout)")
@@ -30,5 +30,10 @@ def test_row_config_and_overrides_load(row):
     over = parse_overrides(list(row.set) + list(row.treatment))
     for key, values in (row.grid or {}).items():  # a grid's first value stands for the rest (same key)
         over = deep_merge(over, parse_overrides([f"{key}={values[0] if isinstance(values, list) else values}"]))
+    if row.kind == "sfm":  # the reference's own settings (sfm.<key>) are not pipeline keys
+        from vslam.bench.kinds.sfm import SfmOptions
+        from vslam.config import from_dict
+
+        from_dict(SfmOptions, over.pop("sfm", None) or {}, row.name)
     PipelineConfig.load(path, over)
     assert isinstance(load_yaml(path), dict)

@@ -128,6 +128,10 @@ METRICS: dict[str, Metric] = {
     "kf_ms_ratio": Metric("mapping ms/keyframe B / A", "", ".2f"),
     "ate_a_mean": Metric("mean ATE A", "m", ".4f", _mean("a")),
     "ate_b_mean": Metric("mean ATE B", "m", ".4f", _mean("b")),
+    # kind sfm (vslam.bench.kinds.sfm): against offline SfM on the same frames
+    "sfm_ratio": Metric("ATE / offline SfM ATE", "", ".2f"),
+    "sfm_ate": Metric("offline SfM ATE", "m", ".4f"),
+    "scale_jump": Metric("largest scale change of a third", "", ".3f"),
     # kind line_ba (vslam.profiling.line_ba_cost)
     "ratio": Metric("CPU per local BA with lines / without", "", ".2f"),
     # kind batch (vslam.bench.batch.batch_row)

@@ -28,13 +28,13 @@ PER_FRAME = ("features", "depth", "pose", "total")  # run on every frame: median
 SINGLE_RUN_KINDS = ("place", "features", "pose", "detector", "speed", "line_ba", "eval_detector")
 
 # kinds with a table of their own below the SLAM table
-OWN_TABLE_KINDS = ("fusion", "imu_preint", "batch", "ab") + SINGLE_RUN_KINDS
+OWN_TABLE_KINDS = ("fusion", "imu_preint", "batch", "ab", "sfm") + SINGLE_RUN_KINDS
 
 @dataclass(frozen=True)
 class BenchRow:
     name: str
     kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch", "place", "features", "pose", "detector",
-                  "ab", "speed", "line_ba", "eval_detector"] = "run"
+                  "ab", "speed", "line_ba", "eval_detector", "sfm"] = "run"
     config: str = ""  # pipeline YAML, relative to the suite file's folder's parent (the repo root) or absolute
     set: tuple[str, ...] = ()  # KEY=VALUE overrides
     note: str = ""

@@ -18,6 +18,11 @@ from vslam.config import deep_merge, from_dict, load_yaml
 
 
 def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
+    return run_pipeline(config, overrides, out_dir)[0]
+
+
+def run_pipeline(config: str | None, overrides: dict[str, Any], out_dir: str) -> tuple[dict[str, Any], Any]:
+    """One pipeline run -> (the result row ``job`` keeps, the ``RunResult``: trajectory, ground truth, eval)."""
     from vslam.pipeline import Pipeline, PipelineConfig
 
     cfg = PipelineConfig.load(config, deep_merge(overrides, {"output": {"dir": out_dir}}))
@@ -59,7 +64,7 @@ def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str
     if len(totals) >= 1000:
         row["ms_first500"], row["ms_last500"] = float(np.median(totals[:500])), float(np.median(totals[-500:]))
     row["peak_rss_mb"] = peak_rss_mb()
-    return row
+    return row, res
 
 
 def stage_times(stats_csv: Path) -> dict[str, Any]:

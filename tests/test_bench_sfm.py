@@ -1,0 +1,94 @@
+"""Bench kind ``sfm`` (vslam against offline SfM): its metrics on constructed trajectories, the camera model
+handed to COLMAP, the cache, and its table."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vslam.bench.kinds import sfm
+from vslam.bench.suite import BenchRow
+from vslam.data.trajectory import Trajectory
+from vslam.data.types import PinholeCamera
+from vslam.eval import EvalConfig
+from vslam.geometry.se3 import make_T, so3_exp
+
+
+def _drive(n: int = 90) -> Trajectory:
+    """A curving 0.5 m/frame drive (T_world_cam), 10 Hz."""
+    t = np.arange(n) * 0.1
+    poses = [make_T(so3_exp([0.0, 0.01 * i, 0.0]), [3.0 * np.sin(0.01 * i) * i / 6, 0.1 * np.sin(0.2 * i), 0.5 * i])
+             for i in range(n)]
+    return Trajectory(t, np.array(poses))
+
+
+def _similar(traj: Trajectory, s: float) -> Trajectory:
+    """The trajectory in another frame and scale (what a monocular run gives)."""
+    T = make_T(so3_exp([0.3, -0.2, 0.1]), [1.0, 2.0, -3.0])
+    poses = np.array([T @ p for p in traj.poses])
+    poses[:, :3, 3] *= s
+    return Trajectory(traj.timestamps, poses)
+
+
+def test_metrics_of_an_exact_similar_trajectory():
+    gt = _drive()
+    m = sfm._metrics(_similar(gt, 0.2), gt, EvalConfig(), (10.0, 20.0), 10, "vslam")
+    assert m["vslam_ate"] < 1e-9 and m["vslam_t_rel"] < 1e-6 and m["vslam_r_rel"] < 1e-3
+    assert m["vslam_scale"] == pytest.approx(5.0)
+    assert m["vslam_scale_thirds"] == pytest.approx([1.0, 1.0, 1.0]) and m["scale_jump"] < 1e-9
+
+
+def test_a_scale_jump_in_the_last_third_is_reported():
+    gt = _drive()
+    est = _similar(gt, 1.0)
+    pos = est.poses[:, :3, 3].copy()
+    # from frame 60 on the estimate moves 30 % farther per frame than the truth
+    steps = np.diff(pos, axis=0)
+    steps[59:] *= 1.3
+    est.poses[1:, :3, 3] = pos[0] + np.cumsum(steps, axis=0)
+    m = sfm._metrics(est, gt, EvalConfig(), (10.0, 20.0), 10, "vslam")
+    first, second, last = m["vslam_scale_thirds"]
+    assert last < 0.9 < first and m["scale_jump"] > 0.1
+    assert "scale_jump" not in sfm._metrics(est, gt, EvalConfig(), (10.0,), 10, "sfm")  # vslam's own metric
+
+
+def test_camera_models():
+    assert sfm._camera_model(PinholeCamera(640, 480, 500, 501, 320, 240)) == ("PINHOLE", [500, 501, 320, 240])
+    radtan = PinholeCamera(752, 480, 458.6, 457.3, 367.2, 248.4, "radtan", (-0.28, 0.07, 0.0002, 1.8e-5))
+    assert sfm._camera_model(radtan) == ("OPENCV", [458.6, 457.3, 367.2, 248.4, -0.28, 0.07, 0.0002, 1.8e-5])
+    fish = PinholeCamera(640, 480, 300, 300, 320, 240, "equidistant", (0.1, 0.01))
+    assert sfm._camera_model(fish)[0] == "OPENCV_FISHEYE" and len(sfm._camera_model(fish)[1]) == 8
+
+
+def test_cached_reference_is_read_back_without_running_sfm(tmp_path, monkeypatch):
+    from vslam.pipeline import PipelineConfig
+
+    cfg = PipelineConfig.load(None, {"dataset": {"kind": "synthetic", "sensor": "mono", "synthetic": {"n_frames": 5}}})
+    gt = _drive(5)
+    calls = []
+
+    def fake(cfg_, opts, folder):
+        calls.append(folder)
+        return gt, {"frames": 5, "registered": 5}
+
+    monkeypatch.setattr(sfm, "_run_sfm", fake)
+    a, info_a = sfm.sfm_reference(cfg, sfm.SfmOptions(), tmp_path)
+    b, info_b = sfm.sfm_reference(cfg, sfm.SfmOptions(rel_lengths=(5.0,)), tmp_path)  # metric options: same key
+    assert len(calls) == 1 and not info_a["cached"] and info_b["cached"]
+    np.testing.assert_allclose(b.poses, gt.poses, atol=1e-6)
+    sfm.sfm_reference(cfg, sfm.SfmOptions(overlap=5), tmp_path)  # another SfM setting: another key
+    other = PipelineConfig.load(None, {"dataset": {"kind": "synthetic", "sensor": "mono", "drop": [[0, 1]],
+                                                   "synthetic": {"n_frames": 5}}})
+    sfm.sfm_reference(other, sfm.SfmOptions(), tmp_path)  # other frames: another key
+    assert len(calls) == 3 and len(set(calls)) == 3
+
+
+def test_table():
+    row = BenchRow(name="x-sfm", kind="sfm", target="t")
+    r = {"frames": 10, "frames_read": 10, "ate_rmse": 0.3, "sfm_ate": 0.15, "sfm_ratio": 2.0, "vslam_t_rel": 1.5,
+         "vslam_r_rel": 0.2, "sfm": {"registered": 10}, "vslam_scale_thirds": [0.9, 1.0, 1.1], "rel_lengths": [20.0],
+         "ms_per_frame": 70.0}
+    lines = sfm.table([(row, r), (BenchRow(name="y", kind="sfm"), {"error": "boom"})])
+    text = "\n".join(lines)
+    assert "| x-sfm | 10 (10) | 0.3000 | 0.1500 | **2.00x** | 1.50 % / 0.20° | – | 20 | 0.900, 1.000, 1.100 | 70.0 | t |" in text
+    assert "**failed**: boom" in text

@@ -1,0 +1,250 @@
+"""Kind ``sfm``: a monocular pipeline run measured against offline incremental SfM on the same frames.
+
+The reference is COLMAP's incremental mapper (pycolmap): SIFT on every frame the run reads, sequential matching,
+the calibrated camera held fixed, the largest model kept. Both trajectories are Sim3-aligned to the ground truth
+with evo (``vslam.eval``) and the row reports vslam ATE / SfM ATE. The SfM result is cached under
+``<jobs dir>/_sfm/<key>/`` (the key hashes the frame selection and the SfM settings), so a rerun of the bench only
+runs the pipeline.
+
+Row options go in ``set:`` beside the pipeline overrides, under ``sfm.`` (``SfmOptions``), e.g.
+``sfm.overlap=10``, ``sfm.rel_lengths=[20, 40, 60, 80]``. Beyond the ATE ratio the row reports:
+
+- ``t_rel`` / ``r_rel``: the KITTI odometry metric (% and deg / 100 m) over ``rel_lengths`` on the Sim3-aligned
+  poses (the devkit scores the unaligned ones, meaningless without a metric scale), for both runs;
+- ``scale_thirds``: the Sim3 scale of each third of the run (aligned alone) over the whole run's; ``scale_jump`` is
+  the largest departure from 1 (a scale that drifts or jumps shows here long before it dominates the ATE).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vslam.bench.suite import BenchRow
+from vslam.bench.tables import fmt, md_failed_row, md_section
+from vslam.config import from_dict
+from vslam.data.trajectory import Trajectory, read_trajectory, write_trajectory
+from vslam.errors import ConfigError, EvalError
+
+log = logging.getLogger(__name__)
+
+CACHE_VERSION = 1  # bump when the way the reference is computed changes (a new key, old caches ignored)
+
+
+@dataclass(frozen=True)
+class SfmOptions:
+    """The reference's settings (``sfm.<key>`` in a row's ``set:``) and the row's extra metrics."""
+
+    overlap: int = 10  # sequential matching: each frame against the next ``overlap`` frames
+    quadratic_overlap: bool = True  # ... and the frames 2^k ahead (COLMAP's default)
+    max_features: int = 8192  # SIFT keypoints per frame
+    threads: int = 2
+    seed: int = 0
+    # segment lengths (m) of t_rel / r_rel; empty: KITTI's 100..800 m
+    rel_lengths: tuple[float, ...] = ()
+    rel_step: int = 10  # frames between segment starts (KITTI devkit: 10)
+
+
+def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
+    from vslam.bench.kinds.run import run_pipeline
+    from vslam.pipeline import PipelineConfig
+
+    overrides = dict(overrides)
+    opts = from_dict(SfmOptions, overrides.pop("sfm", None) or {}, "sfm options")
+    row, res = run_pipeline(config, overrides, out_dir)
+    gt = res.eval_groundtruth
+    if gt is None or res.eval is None:
+        raise EvalError(f"sfm row: the run has no evaluation ({res.eval_skipped or 'no ground truth'})")
+    cfg = PipelineConfig.load(config, overrides)
+    lengths = opts.rel_lengths or cfg.eval.kitti_lengths
+    ours = _scored_trajectory(res)
+    row.update(_metrics(ours, gt, cfg.eval, lengths, opts.rel_step, "vslam"))
+    ref, info = sfm_reference(cfg, opts, Path(out_dir).parent / "_sfm")
+    row["sfm"] = info
+    if len(ref) >= 3:
+        row.update(_metrics(ref, gt, cfg.eval, lengths, opts.rel_step, "sfm"))
+        row["sfm_ratio"] = row["ate_rmse"] / row["sfm_ate"] if row.get("sfm_ate") else None
+    row["rel_lengths"] = list(lengths)
+    return row
+
+
+def _scored_trajectory(res: Any) -> Trajectory:
+    """The poses the run's own ATE scored: the main map when maps were never merged."""
+    traj = res.trajectory
+    if res.scored_map is not None and res.map_ids is not None:
+        traj = traj.subset(np.flatnonzero(res.map_ids == res.scored_map))
+    return traj
+
+
+def _metrics(est: Trajectory, gt: Trajectory, eval_cfg: Any, lengths: tuple[float, ...], step: int,
+             prefix: str) -> dict[str, Any]:
+    """{prefix}_ate (Sim3), _t_rel / _r_rel on the aligned poses, _scale_thirds, and (vslam) scale_jump."""
+    from vslam.eval.associate import associate
+    from vslam.eval.kitti import kitti_odometry_error
+    from vslam.eval.metrics import align, ate
+
+    assoc = associate(est, gt, eval_cfg.max_diff)
+    fit, gt_evo, est_evo = align(assoc, "sim3")
+    out: dict[str, Any] = {f"{prefix}_ate": ate(gt_evo, est_evo)[0].translation.rmse, f"{prefix}_matched": len(assoc),
+                           f"{prefix}_scale": fit.s}
+    kitti, why = kitti_odometry_error(np.asarray(gt_evo.poses_se3), np.asarray(est_evo.poses_se3), tuple(lengths), step)
+    out[f"{prefix}_t_rel"] = kitti.t_rel if kitti is not None else None
+    out[f"{prefix}_r_rel"] = kitti.r_rel if kitti is not None else None
+    if kitti is None:
+        out[f"{prefix}_rel_note"] = why
+    thirds = []
+    for part in np.array_split(np.arange(len(assoc)), 3):
+        if len(part) < 3:
+            continue
+        sub = type(assoc)(assoc.gt.subset(part), assoc.est.subset(part), assoc.by_index)
+        try:
+            thirds.append(align(sub, "sim3")[0].s / fit.s)
+        except EvalError:
+            thirds.append(None)
+    out[f"{prefix}_scale_thirds"] = thirds
+    if prefix == "vslam":
+        ok = [abs(r - 1.0) for r in thirds if r is not None]
+        out["scale_jump"] = max(ok) if len(ok) == 3 else None
+    return out
+
+
+# -- the offline reference ---------------------------------------------------------------------------------------
+
+def sfm_reference(cfg: Any, opts: SfmOptions, cache_root: Path) -> tuple[Trajectory, dict[str, Any]]:
+    """(T_world_cam of the frames SfM registered, info) for the frames ``cfg.dataset`` selects; cached."""
+    import pycolmap
+
+    from vslam.config import to_dict
+
+    key_src = {"v": CACHE_VERSION, "pycolmap": pycolmap.__version__, "dataset": to_dict(cfg.dataset),
+               "sfm": {k: v for k, v in dataclasses.asdict(opts).items() if k not in ("rel_lengths", "rel_step")}}
+    key = hashlib.sha1(json.dumps(key_src, sort_keys=True, default=str).encode()).hexdigest()[:12]
+    folder = cache_root / f"{Path(str(cfg.dataset.path or cfg.dataset.kind)).name}-{key}"
+    traj_path, info_path = folder / "trajectory.tum.txt", folder / "info.json"
+    if traj_path.is_file() and info_path.is_file():
+        info = json.loads(info_path.read_text())
+        info["cached"] = True
+        return read_trajectory(traj_path, "tum"), info
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    (folder / "key.json").write_text(json.dumps(key_src, indent=1, sort_keys=True, default=str) + "\n")
+    traj, info = _run_sfm(cfg, opts, folder)
+    write_trajectory(traj_path, traj, "tum")
+    info_path.write_text(json.dumps(info, indent=1) + "\n")  # written last: its presence marks a complete cache
+    info["cached"] = False
+    return traj, info
+
+
+def _camera_model(cam: Any) -> tuple[str, list[float]]:
+    """COLMAP's model and parameters for our pinhole camera with its distortion."""
+    base = [cam.fx, cam.fy, cam.cx, cam.cy]
+    if not cam.is_distorted:
+        return "PINHOLE", base
+    d = list(cam.distortion)
+    if cam.distortion_model == "equidistant":
+        return "OPENCV_FISHEYE", base + (d + [0.0] * 4)[:4]
+    if len(d) <= 4 or not any(d[4:]):
+        return "OPENCV", base + (d + [0.0] * 4)[:4]
+    return "FULL_OPENCV", base + (d + [0.0] * 8)[:8]
+
+
+def _run_sfm(cfg: Any, opts: SfmOptions, folder: Path) -> tuple[Trajectory, dict[str, Any]]:
+    import cv2
+    import pycolmap
+
+    from vslam.data.registry import open_dataset
+    from vslam.data.select import select_frames
+
+    t0 = time.perf_counter()
+    images = folder / "images"
+    images.mkdir()
+    stamps: dict[str, float] = {}
+    with open_dataset(cfg.dataset) as base:
+        seq = select_frames(base, cfg.dataset.stride, cfg.dataset.drop)
+        cam = seq.calibration.cam0
+        for n, frame in enumerate(seq):
+            if cfg.dataset.max_frames and n >= cfg.dataset.max_frames:
+                break
+            name = f"{frame.index:06d}.png"
+            cv2.imwrite(str(images / name), frame.image)
+            stamps[name] = float(frame.timestamp)
+    if not stamps:
+        raise ConfigError("sfm row: the dataset selection holds no frame")
+    model, params = _camera_model(cam)
+    db = folder / "database.db"
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model, reader.camera_params = model, ",".join(f"{p:.10g}" for p in params)
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = opts.threads
+    extraction.sift.max_num_features = opts.max_features
+    pycolmap.extract_features(db, images, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = opts.threads
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap, pairing.quadratic_overlap, pairing.num_threads = opts.overlap, opts.quadratic_overlap, opts.threads
+    pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
+    t_match = time.perf_counter() - t0
+    mapper = pycolmap.IncrementalPipelineOptions()
+    mapper.num_threads, mapper.random_seed = opts.threads, opts.seed
+    mapper.mapper.random_seed = mapper.triangulation.random_seed = opts.seed
+    mapper.ba_refine_focal_length = mapper.ba_refine_principal_point = mapper.ba_refine_extra_params = False
+    models = pycolmap.incremental_mapping(db, images, folder / "sparse", mapper)
+    if not models:
+        raise EvalError(f"sfm row: COLMAP registered no model from {len(stamps)} frames")
+    rec = max(models.values(), key=lambda r: r.num_reg_images())
+    poses = []
+    for img in rec.images.values():
+        if not img.has_pose:
+            continue
+        T = np.eye(4)
+        T[:3, :] = img.cam_from_world().inverse().matrix()
+        poses.append((stamps[img.name], T))
+    poses.sort(key=lambda p: p[0])
+    rec.update_point_3d_errors()
+    info = {"frames": len(stamps), "registered": len(poses), "models": len(models), "points": rec.num_points3D(),
+            "reproj_px": rec.compute_mean_reprojection_error(), "seconds_features_matching": t_match,
+            "seconds": time.perf_counter() - t0, "camera": model}
+    shutil.rmtree(images, ignore_errors=True)  # re-made from the dataset if ever needed; the database stays
+    return Trajectory(np.array([p[0] for p in poses]), np.array([p[1] for p in poses]).reshape(-1, 4, 4)), info
+
+
+def table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
+    """vslam against offline SfM on the same frames."""
+    if not rows:
+        return []
+    lines = md_section(
+        "Monocular against offline SfM (`sfm`)",
+        "The pipeline run and COLMAP's incremental SfM (pycolmap: SIFT, sequential matching, the calibrated camera "
+        "fixed, largest model) on the same frames, both Sim3-aligned to the ground truth (evo). t_rel % / r_rel "
+        "deg per 100 m: the KITTI metric on the aligned poses over the row's segment lengths. Scale per third: "
+        "each third of the run aligned alone, its scale over the whole run's (1 = no drift or jump).",
+        ["row", "frames (SfM registered)", "vslam ATE m", "SfM ATE m", "ratio", "t_rel / r_rel vslam",
+         "t_rel / r_rel SfM", "segments m", "scale per third (vslam)", "ms/frame", "target"])
+    for row, r in rows:
+        if "error" in r:
+            lines.append(md_failed_row(row, r["error"], 11))
+            continue
+        sfm = r.get("sfm") or {}
+        thirds = ", ".join("–" if x is None else f"{x:.3f}" for x in r.get("vslam_scale_thirds") or [])
+        segs = ", ".join(f"{x:g}" for x in r.get("rel_lengths") or [])
+        lines.append(
+            f"| {row.name} | {r.get('frames_read', r.get('frames'))} ({sfm.get('registered', '–')}) | "
+            f"{fmt(r.get('ate_rmse'), '.4f')} | {fmt(r.get('sfm_ate'), '.4f')} | **{fmt(r.get('sfm_ratio'), '.2f')}x** | "
+            f"{_rel(r, 'vslam')} | {_rel(r, 'sfm')} | {segs} | {thirds} | {fmt(r.get('ms_per_frame'), '.1f')} | "
+            f"{row.target} |")
+    return lines
+
+
+def _rel(r: dict[str, Any], prefix: str) -> str:
+    t, rot = r.get(f"{prefix}_t_rel"), r.get(f"{prefix}_r_rel")
+    return "–" if t is None else f"{t:.2f} % / {rot:.2f}°"
