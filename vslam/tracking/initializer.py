@@ -56,6 +56,18 @@ class InitConfig:
     planar_inlier_ratio: float = 0.8  # also use H when H explains this fraction of E's inliers (COLMAP's max_H_inlier_ratio)
     ransac_confidence: float = 0.999
     ransac_max_iters: int = 2000
+    # Only well-conditioned points become map points: a model inlier triangulated under less parallax than this
+    # still counts for the motion's support but is not kept (its depth is mostly noise). 0 = ORB-SLAM's 0.36 deg.
+    point_min_parallax_deg: float = 0.0
+    # Pair choice (``MonoInitializer``). 0 = the first frame that passes every test above makes the pair. > 0: a
+    # passing frame is taken once its median parallax reaches this, or when waiting would lose the pair (matches
+    # to the reference fell under ``keep_matches_ratio`` of those at the first passing frame, or the tries are
+    # about to run out); a wider first baseline gives better-conditioned first depths.
+    target_parallax_deg: float = 0.0
+    keep_matches_ratio: float = 0.7
+    # a pair whose accepted points are fewer than this fraction of its matches is refused (matches on movers,
+    # repeated texture, a wrong model): 0 = no such test
+    min_inlier_ratio: float = 0.0
 
 
 @dataclass
@@ -269,6 +281,12 @@ def _reconstruct(uv_ref, uv_cur, K, cfg: InitConfig, model, inl, motions, ratio)
     if n_good < cfg.min_points or parallax < cfg.min_parallax_deg:
         log.debug("init refused (%s): %d good points, median parallax %.2f deg", model, n_good, parallax)
         return None
+    if cfg.point_min_parallax_deg > _MIN_TRIANGULATION_DEG:  # keep the well-conditioned points only
+        good &= tri.parallax_deg >= cfg.point_min_parallax_deg
+        if int(np.count_nonzero(good)) < cfg.min_points:
+            log.debug("init refused (%s): %d points above %.2f deg parallax", model, int(np.count_nonzero(good)),
+                      cfg.point_min_parallax_deg)
+            return None
 
     scale = 1.0 / float(np.median(tri.depth1[good]))
     T_cur_ref = T.copy()

@@ -5,6 +5,14 @@ is matched to it and handed to ``initialize_two_view`` until that accepts (it
 needs parallax). If matches to the reference drop too low, the current frame
 becomes the new reference. The map's scale is arbitrary (median depth 1 in the
 first keyframe) but kept consistent afterwards.
+
+Pair choice (``InitConfig.target_parallax_deg`` > 0): a frame that passes is
+taken only once the pair's median parallax reaches the target, or when waiting
+would lose the pair (its matches to the reference fell below
+``keep_matches_ratio`` of those at the first passing frame, or the tries run
+out), and never when its accepted points are fewer than ``min_inlier_ratio`` of
+its matches. The pair is always the reference and the current frame: the
+tracker goes on from the current frame's pose.
 """
 
 from __future__ import annotations
@@ -20,7 +28,7 @@ from vslam.features.base import Features
 from vslam.features.matching import match_mutual
 from vslam.geometry.se3 import inv_T
 from vslam.mapping.map import KeyFrame, Map
-from vslam.tracking.initializer import InitConfig, initialize_two_view
+from vslam.tracking.initializer import InitConfig, TwoViewResult, initialize_two_view
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +45,9 @@ class MonoInitializer:
         self.cam, self.cfg, self.ratio, self.max_tries = cam, cfg, ratio, max_tries
         self.ref: _RefView | None = None
         self.tries = 0
+        self.first_pass_matches = 0  # matches to the reference of the first frame that passed (pair choice)
+        self.result: TwoViewResult | None = None  # the two-view geometry of the pair taken (model, parallax)
+        self.pair_matches = 0  # matches between the two views of the pair taken
 
     def try_initialize(self, slam_map: Map, frame_index: int, timestamp: float, feats: Features,
                        stereo_cam: StereoCamera, backend: BackendConfig, run_ba: bool) -> tuple[KeyFrame, KeyFrame] | None:
@@ -53,8 +64,11 @@ class MonoInitializer:
         if res is None:
             return None
         good = np.flatnonzero(res.inliers & np.isfinite(res.pts_ref[:, 0]))
-        if len(good) < self.cfg.min_points:
+        if len(good) < self.cfg.min_points or len(good) < self.cfg.min_inlier_ratio * len(m):
             return None
+        if not self._take(res.parallax_deg, len(m)):
+            return None
+        self.result, self.pair_matches = res, len(m)
         nan = np.full(len(feats), np.nan)
         r = self.ref
         kf0 = slam_map.add_keyframe(r.frame_index, r.timestamp, np.eye(4), r.features, np.full(len(r.features), np.nan),
@@ -70,8 +84,17 @@ class MonoInitializer:
         self.ref = None
         return kf0, kf1
 
+    def _take(self, parallax_deg: float, n_matches: int) -> bool:
+        """Pair choice: whether a pair that passed every test is taken now or a later frame is waited for."""
+        if self.cfg.target_parallax_deg <= 0.0 or parallax_deg >= self.cfg.target_parallax_deg:
+            return True
+        if self.first_pass_matches == 0:
+            self.first_pass_matches = n_matches
+        return n_matches < self.cfg.keep_matches_ratio * self.first_pass_matches or self.tries >= self.max_tries - 1
+
     def _reset(self, frame_index: int, timestamp: float, feats: Features) -> None:
         self.tries = 0
+        self.first_pass_matches = 0
         self.ref = _RefView(frame_index, timestamp, feats) if len(feats) >= self.cfg.min_matches else None
 
 
