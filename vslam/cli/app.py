@@ -39,6 +39,10 @@ def _summary(result: Any, out: Path) -> None:
           f"{result.fps:.1f} frames/s{dropped}")
     if result.association is not None:  # the recording's pairing: what was used, what was dropped and why
         print(result.association.summary())
+    rec = getattr(result, "recovery", {})
+    if rec.get("new_maps"):  # tracking was lost: how the maps ended
+        print(f"maps: {rec['new_maps']} new after tracking losses, {rec.get('merges', 0)} merged into older ones, "
+              f"{rec.get('map_switches', 0)} taken up again by relocalisation; {len(result.maps_summary())} at the end")
     print(f"trajectory: {result.paths.get('trajectory_tum', out)}")
     if result.eval is None:
         print(f"not evaluated: {result.eval_skipped}" if result.eval_skipped else "no ground truth: trajectory not evaluated")

@@ -114,6 +114,12 @@ class Map:
         m._next_kf, m._next_pt = self._next_kf, self._next_pt
         return m
 
+    def continue_ids(self, other: Map) -> None:
+        """New keyframe and point ids continue after ``other``'s as well as this map's own (a map taken up again
+        after ``other`` was built)."""
+        self._next_kf = max(self._next_kf, other._next_kf)
+        self._next_pt = max(self._next_pt, other._next_pt)
+
     def absorb(self, other: Map, T_this_other: np.ndarray, scale: float = 1.0) -> None:
         """Move every keyframe and point of ``other`` into this map, expressed in this map's frame (x <- s R x + t:
         ``scale`` for a monocular map, whose unit is its own); ``other`` is left empty. The two maps share no
@@ -140,8 +146,7 @@ class Map:
             cov[:, 3:] *= scale
             self.links.append(PoseLink(ln.a, ln.b, T, cov))
         other.links = []
-        self._next_kf = max(self._next_kf, other._next_kf)
-        self._next_pt = max(self._next_pt, other._next_pt)
+        self.continue_ids(other)
         other.keyframes, other.points = {}, {}
         self.revision += 1
         other.revision += 1

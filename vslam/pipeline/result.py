@@ -40,6 +40,8 @@ class RunResult:
     skipped: list[int] = field(default_factory=list)
     # how the reader paired rgb with depth / left with right over the recording (None: nothing to pair)
     association: Any = None
+    # recovery counts of the tracker (``Odometry.recovery_stats``: new maps, merges, map switches)
+    recovery: dict[str, int] = field(default_factory=dict)
 
     @property
     def fps(self) -> float:
@@ -71,5 +73,5 @@ class RunResult:
         return {"frames": n, "skipped": len(self.skipped), "posed": posed, "posed_fraction": posed / n if n else 0.0,
                 "tracked": int(self.tracked.sum()), "metric_scale": self.metric_scale,
                 "scored": "whole run" if self.scored_map is None else f"largest map ({self.scored_map})",
-                "scored_map": self.scored_map, "maps": self.maps_summary(),
+                "scored_map": self.scored_map, "maps": self.maps_summary(), **self.recovery,
                 "association": dataclasses.asdict(self.association) if self.association is not None else None}

@@ -49,10 +49,28 @@ log = logging.getLogger(__name__)
 # inconsistent with vision, or until the keyframe that restarts the IMU chain), blank without an IMU.
 # ms_detector: the dynamic-object detector (slam.dynamic.source=detector), blank otherwise.
 # dropped: frames the live queue dropped since the previous row (``vslam.data.live``); 0 for recorded input.
-STAT_COLUMNS = ("index", "timestamp", "dropped", "map_id", "tracked", "status", "uncertain", "pose_std_m", "pose_std_deg", "n_features",
+# map_id: the map the frame was tracked in; final_map_id: the map it ended in after merges (filled at the end)
+STAT_COLUMNS = ("index", "timestamp", "dropped", "map_id", "final_map_id", "tracked", "status", "uncertain", "pose_std_m", "pose_std_deg", "n_features",
                 "n_matches", "n_inliers", "n_lines", "n_line_inliers", "imu", "ms_decode", "ms_features", "ms_detector",
                 "ms_dynamic", "ms_lines", "ms_depth", "ms_pose", "ms_mapping", "ms_map_create", "ms_map_fuse_cull",
                 "ms_map_ba", "ms_map_wait", "ms_map_loop", "ms_total")
+
+
+def _write_final_maps(path: Path, stats: list[dict], odo: Odometry) -> None:
+    """stats.csv again, its final_map_id column filled (the map each frame ended in after the merges); written
+    whole to a temporary file and renamed, so the per-frame file written during the run is never half-replaced."""
+    from vslam.outputs import atomic_open
+
+    ids = [int(r["map_id"]) for r in stats if "map_id" in r]
+    final = iter(odo.final_map_ids(ids))
+    for r in stats:
+        if "map_id" in r:
+            r["final_map_id"] = int(next(final))
+    with atomic_open(path, "w", newline="") as f:
+        sw = csv.writer(f)
+        sw.writerow(STAT_COLUMNS)
+        for r in stats:
+            sw.writerow([_fmt_stat(c, r.get(c, "")) for c in STAT_COLUMNS])
 
 
 def _fmt_stat(col: str, v: object) -> str:
@@ -284,9 +302,11 @@ class Pipeline:
             paths["trajectory_final"] = write_trajectory(
                 out / "trajectory_final.tum.txt",
                 Trajectory(np.array(stamps)[keep], np.array(poses).reshape(-1, 4, 4)[keep]), "tum")
+        _write_final_maps(stats_path, stats, odo)
         traj = Trajectory(np.array(stamps), np.array(poses).reshape(-1, 4, 4))
         result = RunResult(traj, np.array(tracked, bool), stats, None, paths, seconds)
         result.map_ids = final_ids
+        result.recovery = odo.recovery_stats()
         result.dropped = n_dropped if live else None
         result.metric_scale = bool(odo.metric_scale)
         if not live:

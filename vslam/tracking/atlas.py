@@ -49,6 +49,14 @@ class AtlasConfig:
     merge_min_inliers: points the PnP + local-map round must keep for a merge: more than tracking's 20, since
         a wrong merge bends two maps together.
     merge_min_score: place-descriptor similarity floor of a candidate.
+    min_lost_frames: frames not tracked in a row before a new map starts, besides ``new_map_after_s``: at a
+        low frame rate (0.5-1 s between frames) one frame the tracker cannot measure is otherwise a new map,
+        where the next frame would have been tracked in the old one again.
+    relocalise: a frame the current map cannot measure is looked for in the archived maps (place retrieval,
+        then descriptor matching + PnP + the local-map round of ``Tracker.track_keyframe``); found, that map
+        becomes the current one again and the frame continues it (the map it leaves is archived).
+    relocalise_min_inliers: points the local-map round must keep to switch maps: more than tracking's 20, as
+        a wrong switch puts the camera in another place.
     """
 
     enabled: bool = True
@@ -59,6 +67,9 @@ class AtlasConfig:
     merge_top_k: int = 5
     merge_min_inliers: int = 60
     merge_min_score: float = 0.05
+    min_lost_frames: int = 2
+    relocalise: bool = True
+    relocalise_min_inliers: int = 40
 
 
 class Atlas:
@@ -73,6 +84,7 @@ class Atlas:
         self.parent: dict[int, int] = {}  # map id -> the map it was merged into
         self.n_maps = 1  # ids handed out so far (map 0 is the first)
         self.merges: list[tuple[int, int, int, int]] = []  # (merged map, into map, query kf, candidate kf)
+        self.switches = 0  # frames relocalised into an archived map, which then continued
 
     def new_id(self) -> int:
         self.n_maps += 1
@@ -101,11 +113,14 @@ class Atlas:
     def describe(self, features: Features, image: np.ndarray | None = None) -> np.ndarray | None:
         return None if self.descriptor is None else self.descriptor.describe(image, features)
 
-    def locate(self, feats: Features, ur: np.ndarray, vec: np.ndarray) -> tuple[int, int, TrackResult] | None:
-        """The archived map a keyframe (keypoints ``feats``, virtual right ``ur``, descriptor ``vec``) is seen in:
-        (map id, candidate keyframe, its pose there), or None."""
-        if vec is None or not self.cfg.merge or len(feats) < self.tracking.min_inliers:
+    def locate(self, feats: Features, ur: np.ndarray, vec: np.ndarray, min_inliers: int | None = None,
+               method: str = "merge", ratio: float = 0.8) -> tuple[int, int, TrackResult] | None:
+        """The archived map a keyframe or frame (keypoints ``feats``, virtual right ``ur``, descriptor ``vec``) is
+        seen in: (map id, candidate keyframe, its pose there), or None. ``min_inliers``: default
+        ``merge_min_inliers``; ``ratio``: of the descriptor matching (``Tracker.track_keyframe``)."""
+        if vec is None or len(feats) < self.tracking.min_inliers:
             return None
+        need = self.cfg.merge_min_inliers if min_inliers is None else min_inliers
         tree = cKDTree(feats.uv)
         for map_id in sorted(self.maps, reverse=True):  # the most recent map first
             db = self.dbs.get(map_id)
@@ -113,8 +128,8 @@ class Atlas:
                 continue
             tracker = Tracker(self.maps[map_id], self.cam, self.stereo_cam, self.tracking, self.backend)
             for cand, _ in db.query(vec, self.cfg.merge_top_k, min_score=self.cfg.merge_min_score):
-                res = tracker.track_keyframe(feats, ur, cand, tree, "merge")
-                if res is not None and res.ok and res.n_inliers >= self.cfg.merge_min_inliers:
+                res = tracker.track_keyframe(feats, ur, cand, tree, method, ratio)
+                if res is not None and res.ok and res.n_inliers >= need:
                     return map_id, cand, res
         return None
 

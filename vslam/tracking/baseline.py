@@ -114,8 +114,9 @@ class Odometry(Protocol):
     """What the pipeline drives (``FrameToFrameOdometry``, ``vslam.tracking.slam.SlamTracker``): frames in order
     through ``track``; at the end ``finish`` writes what it has beside the trajectory, ``final_poses`` gives the
     frames' poses where the map moved after they were written (None: the online poses stand) and
-    ``final_map_ids`` the map each tracked map id ended in after merges. ``metric_scale``: the trajectory is in
-    metres (else it is scored with Sim3)."""
+    ``final_map_ids`` the map each tracked map id ended in after merges, ``recovery_stats`` how often maps were
+    started, merged and taken up again. ``metric_scale``: the trajectory is in metres (else it is scored with
+    Sim3)."""
 
     @property
     def metric_scale(self) -> bool: ...
@@ -127,6 +128,8 @@ class Odometry(Protocol):
     def final_poses(self, frame_indices: list[int]) -> np.ndarray | None: ...
 
     def final_map_ids(self, map_ids: list[int]) -> list[int]: ...
+
+    def recovery_stats(self) -> dict[str, int]: ...
 
 
 class FrameToFrameOdometry:
@@ -240,6 +243,9 @@ class FrameToFrameOdometry:
 
     def final_map_ids(self, map_ids: list[int]) -> list[int]:
         return list(map_ids)  # one map, never merged
+
+    def recovery_stats(self) -> dict[str, int]:
+        return {}  # one map, no recovery beyond the predicted pose
 
     def track(self, frame: Frame) -> FrameEstimate:
         t0 = time.perf_counter()

@@ -170,6 +170,11 @@ class DenseOdometry:
         self._ref_levels = None
         self.wants_keyframe = False
 
+    def clear_reference(self) -> None:
+        """No reference until the next ``set_reference``: frames are refused."""
+        self.ref_id, self._chain, self._ref_raw, self._ref_levels = None, None, None, None
+        self.wants_keyframe = False
+
     def _levels(self) -> list[_Level]:
         import open3d as o3d
         from scipy.spatial import cKDTree

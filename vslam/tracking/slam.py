@@ -135,6 +135,9 @@ class SlamTracker:
         self._t_tracked: float | None = None  # time of the last tracked frame
         self._restart: np.ndarray | None = None  # a map was lost and no new one started yet: the pose it starts at
         self._lost_for_now = 0.0  # seconds since the last tracked frame, at the last frame not tracked
+        self._n_lost = 0  # frames not tracked in a row
+        self._t_last: float | None = None  # time of the last frame, and the interval before it (0: unknown)
+        self._dt_last = 0.0
         self.T_world_cam = np.eye(4)
         self.velocity = np.eye(4)  # T_prev_cur of the last tracked step
         self.ref_kf: int | None = None
@@ -223,7 +226,14 @@ class SlamTracker:
                     est.pose_cov = np.zeros((6, 6))
                     if self.atlas.maps:  # type: ignore[union-attr]
                         self._try_merge(self.map.keyframes[self.ref_kf], frame.image)
-            if self.mono_init is not None and self.cfg.backfill and not self.cfg.load_map:  # saved keyframes are not this run's frames
+                else:  # monocular, no new map yet: the camera may be back in a map it left
+                    res = self._relocalise_archived(frame, feats, ur)
+                    if res is not None:
+                        est.tracked, est.status, est.pose_cov = True, res.method, res.cov
+                        est.n_matches, est.n_inliers = res.n_matches, res.n_inliers
+            if est.status == "relocalised":
+                pass  # an archived map continues: its frames were localised when it was built
+            elif self.mono_init is not None and self.cfg.backfill and not self.cfg.load_map:  # saved keyframes are not this run's frames
                 if est.tracked:
                     est.backfill = self._backfill()
                 else:  # the initialiser retries for max_tries frames per reference: older frames share little
@@ -283,6 +293,9 @@ class SlamTracker:
         t4 = time.perf_counter()
         if est.tracked:
             self._t_tracked = frame.timestamp
+        self._n_lost = 0 if est.tracked else self._n_lost + 1
+        self._dt_last = frame.timestamp - self._t_last if self._t_last is not None else 0.0
+        self._t_last = frame.timestamp
         est.map_id = self.map_id
         self._prev_tracked = est.tracked
         self.n_frames += 1
@@ -401,12 +414,15 @@ class SlamTracker:
         """The recovery ladder, each step only when the ones before failed: the motion model's projection search,
         the reference keyframe by descriptor, after a loss the newest keyframes (``Tracker.track``); place
         relocalisation over the whole map (``slam.loop``); the dense depth step (RGB-D, ``slam.dense``)."""
+        wide = self._t_tracked is not None and frame.timestamp - self._t_tracked >= self.cfg.tracking.wide_gap_s
         res = self.tracker.track(feats, ur, T_pred, self.ref_kf, after_loss=not self._prev_tracked,  # type: ignore[arg-type]
-                                 last_ids=self._last_ids)
+                                 last_ids=self._last_ids, wide=wide)
         if not res.ok and self.loop is not None and self.cfg.loop.relocalise:  # place recognition over all keyframes
             res = self.loop.relocalise(self.tracker, feats, ur, frame.image) or res
         for s in self.stages:  # lines refine a tracked pose; dense depth tracking tries a lost one
             res = s.measure(self, frame, feats, ur, T_pred, res)
+        if not res.ok:  # the camera may be back in a map it left: that map continues
+            res = self._relocalise_archived(frame, feats, ur) or res
         return res
 
     def _lost(self, frame: Frame, feats: Features, depth: np.ndarray, ur: np.ndarray, T_pred: np.ndarray,
@@ -417,7 +433,9 @@ class SlamTracker:
         self.T_world_cam = T_pred
         log.debug("frame %d not tracked; pose predicted", frame.index)
         lost_s = self._lost_for_now = self._lost_for(frame.timestamp)
-        if lost_s >= self.cfg.atlas.new_map_after_s:
+        # after a gap in the images (3 frame intervals or more) nothing is gained by waiting for another frame
+        gap = self._dt_last > 0 and frame.timestamp - self._t_last > 3 * self._dt_last  # type: ignore[operator]
+        if lost_s >= self.cfg.atlas.new_map_after_s and (self._n_lost + 1 >= self.cfg.atlas.min_lost_frames or gap):
             # the new map's frame continues the old one's: from where the IMU puts the camera, else where it was
             # last seen
             T0 = T_pred if self.vio is not None and self.vio.predicting else T_last
@@ -451,7 +469,7 @@ class SlamTracker:
             return False  # not enough depth for a map worth keeping (blur, a black frame): stay on the old one
         if self._pending is not None:
             self._flush_mapping()
-        if atlas.descriptor is None and atlas.cfg.merge:
+        if atlas.descriptor is None and (atlas.cfg.merge or atlas.cfg.relocalise):
             atlas.descriptor = self._place_descriptor()
         if self.map.keyframes:
             old_db = self.loop.db if self.loop is not None else None
@@ -474,6 +492,52 @@ class SlamTracker:
         self._restart = T0  # monocular: the next two-view initialisation starts the map (``track``)
         return False
 
+    def _relocalise_archived(self, frame: Frame, feats: Features, ur: np.ndarray) -> TrackResult | None:
+        """A frame the current map did not measure, looked for in the archived maps (``atlas.relocalise``); found,
+        that map becomes the current one again (``_switch_map``) -> the frame's result there, method
+        "relocalised". Not with an IMU: each map's inertial state is not kept when it is archived."""
+        atlas = self.atlas
+        if atlas is None or not atlas.maps or not atlas.cfg.relocalise or self.vio is not None:
+            return None
+        if atlas.descriptor is None:
+            return None  # no place descriptor (learned keypoints without the loop closer)
+        vec = atlas.describe(feats, frame.image)
+        hit = atlas.locate(feats, ur, vec, atlas.cfg.relocalise_min_inliers, "relocalised",
+                           self.cfg.tracking.ratio_wide)
+        if hit is None:
+            return None
+        map_id, cand, res = hit
+        self._switch_map(map_id)
+        self.T_world_cam, self.velocity = res.T_world_cam, np.eye(4)  # the motion since the loss is unknown
+        self.ref_kf = self.tracker.best_reference(res.point_ids, cand)
+        self._last_ids = res.point_ids[res.point_ids >= 0]
+        log.info("frame %d relocalised in map %d (keyframe %d, %d inliers)", frame.index, map_id, cand, res.n_inliers)
+        return res
+
+    def _switch_map(self, map_id: int) -> None:
+        """Archived map ``map_id`` becomes the current one; the current map is archived (dropped when it has no
+        keyframe yet) and any pending monocular re-initialisation is given up."""
+        atlas = self.atlas
+        assert atlas is not None
+        if self._pending is not None:
+            self._flush_mapping()
+        m, db = atlas.take(map_id)
+        m.continue_ids(self.map)  # ids stay unique across the run's maps
+        if self.map.keyframes:
+            atlas.archive(self.map_id, self.map, self.loop.db if self.loop is not None else None)
+        if self.loop is not None:
+            from vslam.loop.database import KeyframeDatabase
+
+            self.loop.db = db if db is not None else KeyframeDatabase(self.loop.descriptor.dim)
+            self.loop._groups = []
+        self._use_map(m)
+        self.map_id = map_id
+        self._restart = None
+        if self.mono_init is not None:
+            self.mono_init = MonoInitializer(self.cam, self.cfg.init)
+            self._pre_init = []
+        atlas.switches += 1
+
     def _place_descriptor(self):
         """The keyframes' place descriptor for merging: the loop closer's, else the bag of words over ORB
         descriptors (None for learned float descriptors without the loop closer: maps are then never merged)."""
@@ -493,7 +557,7 @@ class SlamTracker:
         assert atlas is not None
         vec = (self.loop.db.vector(kf.id) if self.loop is not None and kf.id in self.loop.db
                else atlas.describe(kf.features, image))
-        hit = atlas.locate(kf.features, kf.ur, vec)
+        hit = atlas.locate(kf.features, kf.ur, vec) if atlas.cfg.merge else None
         if hit is not None:
             self._merge(kf, *hit)
         return {"merge": (time.perf_counter() - t) * 1e3}
@@ -596,6 +660,14 @@ class SlamTracker:
         if self.atlas is None:
             return list(map_ids)
         return [self.atlas.final_id(m) for m in map_ids]
+
+    def recovery_stats(self) -> dict[str, int]:
+        """new_maps (started after a loss), merges (maps joined into an older one), map_switches (frames
+        relocalised into an archived map, which then continued)."""
+        a = self.atlas
+        if a is None:
+            return {}
+        return {"new_maps": a.n_maps - 1, "merges": len(a.merges), "map_switches": a.switches}
 
     def finish(self, out_dir: str | Path) -> dict[str, Path]:
         """Write ``keyframes.tum.txt`` (optimised keyframe poses) and ``map.ply`` (map points, world frame);

@@ -52,6 +52,12 @@ class TrackingConfig:
     far_prediction_reference: bool = True
     max_hamming: int = 64  # bits (of 256)
     ratio: float = 0.9  # best / second best descriptor distance within the radius
+    # A frame this long (seconds) after the last tracked one is a wide baseline (a low frame rate, a dropped
+    # stretch): the projection search uses radius_lost_px and keyframe matching the looser ratio_wide, whose
+    # extra matches RANSAC sorts out. At 0.5-1 s between frames the 0.8 ratio test leaves too few true matches
+    # for PnP although the keyframe shares a third of its points with the frame (docs/tracking.md).
+    wide_gap_s: float = 0.25
+    ratio_wide: float = 0.9
     min_matches: int = 30  # fewer projection matches -> descriptor matching against keyframes
     min_inliers: int = 20  # fewer inliers -> the frame is lost (pose predicted, tracked=False)
     ransac_px: float = 3.0
@@ -223,7 +229,7 @@ class Tracker:
 
     # -- strategies -----------------------------------------------------------
     def track_projection(self, feats: Features, ur: np.ndarray, T_pred: np.ndarray, ref_kf: int, radius: float, tree: cKDTree,
-                         last_ids: np.ndarray | None = None) -> TrackResult | None:
+                         last_ids: np.ndarray | None = None, ratio: float = 0.8) -> TrackResult | None:
         """Motion-model round (``last_ids``: the previous frame's tracked points, else / if too few: the local
         map) + LO-RANSAC PnP, then ``_finish_local``."""
         local = self.local_points(ref_kf)
@@ -251,7 +257,7 @@ class Tracker:
             # happened to be close (one image region, one depth), a subset that may pin the pose badly and that the
             # tight second round cannot leave (seen on TUM teddy: docs/tracking.md). The reference keyframe's
             # descriptor matches do not depend on the prediction.
-            ref = self.track_keyframe(feats, ur, ref_kf, tree)
+            ref = self.track_keyframe(feats, ur, ref_kf, tree, ratio=ratio)
             if ref is not None and ref.ok:
                 return ref
         # One cheap least-squares round on the RANSAC inliers before the tight second-round search: the
@@ -262,13 +268,15 @@ class Tracker:
         res.tried_reference = far
         return res
 
-    def track_keyframe(self, feats: Features, ur: np.ndarray, kf_id: int, tree: cKDTree, method: str = "reference") -> TrackResult | None:
-        """Descriptor matching against one keyframe's map points, PnP, then the local-map round."""
+    def track_keyframe(self, feats: Features, ur: np.ndarray, kf_id: int, tree: cKDTree, method: str = "reference",
+                       ratio: float = 0.8) -> TrackResult | None:
+        """Descriptor matching against one keyframe's map points (mutual, ``ratio`` test), PnP, then the local-map
+        round."""
         kf = self.map.keyframes[kf_id]
         kps_kf = np.flatnonzero(kf.point_ids >= 0)
         if len(kps_kf) < self.cfg.min_inliers:
             return None
-        m = match_mutual(kf.features.desc[kps_kf], feats.desc, ratio=0.8, max_dist=self.cfg.max_hamming)
+        m = match_mutual(kf.features.desc[kps_kf], feats.desc, ratio=ratio, max_dist=self.cfg.max_hamming)
         if len(m) < self.cfg.min_inliers:
             return None
         pids, kps = kf.point_ids[kps_kf[m[:, 0]]], m[:, 1]
@@ -281,22 +289,24 @@ class Tracker:
         return self._finish_local(T_ref if inl.sum() >= self.cfg.min_inliers else T, feats, ur, kf_id, tree, method)
 
     def track(self, feats: Features, ur: np.ndarray, T_pred: np.ndarray, ref_kf: int, after_loss: bool,
-              last_ids: np.ndarray | None = None) -> TrackResult:
+              last_ids: np.ndarray | None = None, wide: bool = False) -> TrackResult:
         """Try projection, then the reference keyframe, then (after a loss) the newest keyframes. ``last_ids``:
-        map points tracked in the previous frame (``TrackingConfig.first_round_last_frame``)."""
+        map points tracked in the previous frame (``TrackingConfig.first_round_last_frame``); ``wide``: the frame
+        comes ``wide_gap_s`` or more after the last tracked one (wider search, looser ratio test)."""
         fail = TrackResult(T_pred, False, np.full(len(feats), -1, np.int64))
         if len(feats) < self.cfg.min_inliers:
             return fail
         tree = cKDTree(feats.uv)
-        radius = self.cfg.radius_lost_px if after_loss else self.cfg.radius_px
+        radius = self.cfg.radius_lost_px if after_loss or wide else self.cfg.radius_px
+        ratio = self.cfg.ratio_wide if wide else 0.8
         use_last = self.cfg.first_round_last_frame and not after_loss
-        res = self.track_projection(feats, ur, T_pred, ref_kf, radius, tree, last_ids if use_last else None)
+        res = self.track_projection(feats, ur, T_pred, ref_kf, radius, tree, last_ids if use_last else None, ratio)
         if res is None or (not res.ok and not res.tried_reference):
-            res = self.track_keyframe(feats, ur, ref_kf, tree)
-        if (res is None or not res.ok) and after_loss:
+            res = self.track_keyframe(feats, ur, ref_kf, tree, ratio=ratio)
+        if (res is None or not res.ok) and (after_loss or wide):
             for kf_id in sorted(self.map.keyframes, reverse=True)[: self.cfg.reloc_keyframes]:
                 if kf_id != ref_kf:
-                    res = self.track_keyframe(feats, ur, kf_id, tree, "relocalised")
+                    res = self.track_keyframe(feats, ur, kf_id, tree, "relocalised", ratio)
                     if res is not None and res.ok:
                         break
         return res if res is not None and res.ok else fail

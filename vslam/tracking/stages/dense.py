@@ -23,6 +23,11 @@ class DenseStage(Stage):
         # too few features: ICP of the depth against the keyframe's
         return self.dense.track_frame(frame, T_pred, slam.map, len(feats)) or res
 
+    def on_map(self, slam: Any, m) -> None:
+        # another map (taken up again, or merged): a reference outside it has a pose in another frame
+        if self.dense.ref_id is None or self.dense.ref_id not in m.keyframes:
+            self.dense.clear_reference()
+
     def decides_keyframe(self, method: str, depth: np.ndarray, min_inliers: int) -> bool | None:
         if method != "dense":
             return None
