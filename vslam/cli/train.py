@@ -1,5 +1,5 @@
-"""``vslam train <model>``: detector, convert-yolox, keypoints, place. The options every trainer shares, and each
-trainer's command over its library ``train`` (argparse only: torch is imported when one runs)."""
+"""``vslam train <model>``: detector, convert-yolox, keypoints, place, yolox-masks. The options every trainer
+shares, and each trainer's command over its library ``train`` (argparse only: torch is imported when one runs)."""
 
 from __future__ import annotations
 
@@ -41,6 +41,7 @@ def add_cli(train_sub: argparse._SubParsersAction) -> None:
     _add_detector(train_sub)
     _add_place(train_sub)
     _add_keypoints(train_sub)
+    _add_yolox_masks(train_sub)
 
 
 def _add_detector(train_sub: argparse._SubParsersAction) -> None:
@@ -113,4 +114,20 @@ def cmd_train_keypoints(args: argparse.Namespace) -> int:
         metrics = train(train_config(KeypointTrainConfig, args), progress=bar)
     if metrics:
         print(json.dumps({k: metrics[k] for k in ("loss", "stage_s") if k in metrics} | {"eval": metrics.get("eval")}, indent=2))
+    return 0
+
+
+def _add_yolox_masks(train_sub: argparse._SubParsersAction) -> None:
+    add_train_parser(train_sub, "yolox-masks", "train the box-prompted mask head over the frozen YOLOX detector "
+                     "(exact masks + BlazePose-lite pseudo-masks)", "MaskTrainConfig", "iterations=2000",
+                     "last.pt, model.pt, log.csv, metrics.json", cmd_train_yolox_masks)
+
+
+def cmd_train_yolox_masks(args: argparse.Namespace) -> int:
+    from vslam.dynamic.train_yolox_masks import MaskTrainConfig, train
+    from vslam.progress import progress_bar
+
+    with progress_bar("training", unit="it", quiet=args.quiet) as bar:
+        metrics = train(train_config(MaskTrainConfig, args), progress=bar)
+    print(json.dumps(metrics, indent=2))
     return 0

@@ -101,6 +101,8 @@ def family(name: str) -> Registry:
 # The networks. Each public source converts its own checkpoint in vslam/nn/weights/<source>.py.
 DETECTORS.add("yolox-nano", "vslam.nn.detectors.yolox:YOLOX", {"depth": 0.33, "width": 0.25},
               weights="vslam.nn.weights.yolox:convert", about="YOLOX-nano (Megvii, COCO, Apache-2.0)")
+DETECTORS.add("yolox-nano-masks", "vslam.nn.detectors.yolox_masks:YOLOXMasks", {"depth": 0.33, "width": 0.25},
+              about="YOLOX-nano with a box-prompted instance-mask head (trained here: vslam train yolox-masks)")
 KEYPOINTS.add("alike-t", "vslam.nn.keypoints.alike:ALIKE", {"variant": "t"}, weights="vslam.nn.weights.alike:convert",
               about="ALIKE-t (Zhao et al., BSD-3-Clause), 64-d")
 KEYPOINTS.add("alike-s", "vslam.nn.keypoints.alike:ALIKE", {"variant": "s"}, weights="vslam.nn.weights.alike:convert",

@@ -1,0 +1,58 @@
+"""The box-prompted mask head over YOLOX (vslam.nn.detectors.yolox_masks): shapes, and that adding it changes
+nothing of what the box network computes (the boxes must stay the source's bit for bit)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from vslam.errors import ConfigError
+from vslam.nn.detectors.yolox import YOLOX
+from vslam.nn.detectors.yolox_masks import YOLOXMasks, expand_boxes
+from vslam.nn.registry import DETECTORS
+
+SMALL = {"depth": 0.33, "width": 0.125, "classes": ["person", "car"], "input_size": 64}
+
+
+def _pair() -> tuple[YOLOX, YOLOXMasks]:
+    torch.manual_seed(0)
+    box = YOLOX(SMALL).eval()
+    masks = YOLOXMasks(SMALL).eval()
+    res = masks.load_state_dict(box.state_dict(), strict=False)
+    assert not res.unexpected_keys and res.missing_keys and all(k.startswith("mask_head.") for k in res.missing_keys)
+    return box, masks
+
+
+def test_box_outputs_bit_identical_with_the_mask_head():
+    box, masks = _pair()
+    x = torch.rand(2, 3, 64, 96, generator=torch.Generator().manual_seed(1)) * 255
+    with torch.no_grad():
+        a = box({"image": x})
+        b = masks({"image": x, "mask_boxes": [torch.tensor([[4.0, 6.0, 40.0, 60.0]]), torch.zeros((0, 4))]})
+    for k in ("pred", "logits", "boxes", "scores"):
+        assert torch.equal(a[k], b[k]), k
+
+
+def test_mask_head_shapes():
+    _, m = _pair()
+    x = torch.rand(2, 3, 64, 64) * 255
+    boxes = [torch.tensor([[4.0, 6.0, 40.0, 60.0], [10.0, 10.0, 20.0, 30.0]]), torch.tensor([[0.0, 0.0, 64.0, 64.0]])]
+    with torch.no_grad():
+        out = m({"image": x, "mask_boxes": boxes})
+    side = m.conf["mask"]["side"]
+    assert out["mask_logits"].shape == (3, side, side)
+    assert out["mask_rois"][:, 0].tolist() == [0.0, 0.0, 1.0]
+    assert [f.shape[-1] for f in out["feats"]] == [8, 4, 2]  # strides 8, 16, 32
+    torch.testing.assert_close(out["mask_rois"][:, 1:], expand_boxes(torch.cat(boxes), m.conf["mask"]["margin"]))
+    assert m.mask_logits(out["feats"], x, torch.zeros((0, 5))).shape == (0, side, side)
+    with torch.no_grad():
+        assert "mask_logits" not in m({"image": x})  # no prompts, no masks
+
+
+def test_registry_entry_and_conf_errors():
+    m = DETECTORS.build("yolox-nano-masks", {"classes": ["person"], "mask": {"roi": 7, "side": 28}})
+    assert isinstance(m, YOLOXMasks) and m.conf["mask"]["side"] == 28 and m.conf["mask"]["margin"] == 0.1
+    with pytest.raises(ConfigError, match="side must be 4 x roi"):
+        YOLOXMasks({**SMALL, "mask": {"roi": 7, "side": 32}})
+    with pytest.raises(ConfigError, match="unknown key 'sid'"):
+        YOLOXMasks({**SMALL, "mask": {"sid": 28}})
