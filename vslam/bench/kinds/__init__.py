@@ -32,6 +32,7 @@ KINDS: dict[str, Kind] = {
     "detector": Kind(_K + "detector:job", _K + "detector:table"),
     "eval_detector": Kind(_K + "detector:job_eval", _K + "detector:eval_table"),
     "speed": Kind(_K + "speed:job", _K + "speed:table"),
+    "detector_speed": Kind(_K + "detector_speed:job", _K + "detector_speed:table"),
     "line_ba": Kind(_K + "speed:job_line_ba", _K + "speed:line_ba_table"),
     "sfm": Kind(_K + "sfm:job", _K + "sfm:table"),
     "batch": Kind("", "vslam.bench.batch:batch_table"),  # its own serial / pool / Ray passes of run jobs
