@@ -25,7 +25,8 @@ STAGES = ("features", "depth", "pose", "mapping", "map_create", "map_fuse_cull",
 PER_FRAME = ("features", "depth", "pose", "total")  # run on every frame: median ms/frame
 
 # kinds run once whatever --repeat says (deterministic, or repeating their measurement inside the job)
-SINGLE_RUN_KINDS = ("place", "features", "pose", "detector", "speed", "line_ba", "eval_detector", "detector_speed")
+SINGLE_RUN_KINDS = ("place", "features", "pose", "detector", "speed", "line_ba", "eval_detector", "detector_speed",
+                    "extraction")
 
 # kinds with a table of their own below the SLAM table
 OWN_TABLE_KINDS = ("fusion", "imu_preint", "batch", "ab", "sfm") + SINGLE_RUN_KINDS
@@ -34,7 +35,7 @@ OWN_TABLE_KINDS = ("fusion", "imu_preint", "batch", "ab", "sfm") + SINGLE_RUN_KI
 class BenchRow:
     name: str
     kind: Literal["run", "synthetic_render", "fusion", "imu_preint", "batch", "place", "features", "pose", "detector",
-                  "ab", "speed", "line_ba", "eval_detector", "sfm", "detector_speed"] = "run"
+                  "ab", "speed", "line_ba", "eval_detector", "sfm", "detector_speed", "extraction"] = "run"
     config: str = ""  # pipeline YAML, relative to the suite file's folder's parent (the repo root) or absolute
     set: tuple[str, ...] = ()  # KEY=VALUE overrides
     note: str = ""

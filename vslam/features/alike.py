@@ -23,6 +23,9 @@ from vslam.features.base import FeatureConfig, Features
 
 VARIANTS = ("alike-t", "alike-s", "alike-n")
 Select = Callable[[np.ndarray, np.ndarray, tuple[int, int]], np.ndarray]
+# (1,3,h,w) image, (h, w) -> (the four levels, the (h,w) score map): ALIKE.levels + score_map, or onnxruntime's
+Maps = Callable[[torch.Tensor, tuple[int, int]], tuple[list[torch.Tensor], torch.Tensor]]
+RUNTIMES = ("torch", "onnxruntime")
 
 
 def shipped_weights(name: str) -> Path:
@@ -48,6 +51,29 @@ def load_alike(name: str, weights: str | Path = "") -> torch.nn.Module:
     return model.fused().to(memory_format=torch.channels_last)
 
 
+def torch_maps(model: torch.nn.Module) -> Maps:
+    """``Maps`` of the network itself (torch)."""
+    def maps(x: torch.Tensor, hw: tuple[int, int]) -> tuple[list[torch.Tensor], torch.Tensor]:
+        levels = model.levels(x)
+        return levels, model.score_map(levels, hw)[0, 0]
+
+    return maps
+
+
+def make_maps(model: torch.nn.Module, runtime: str) -> Maps:
+    """The dense part of ``model`` run by ``runtime`` (``RUNTIMES``): torch, or onnxruntime
+    (``vslam.nn.keypoints.alike_onnx``; the same maps to float rounding, faster on a loaded 2-core machine)."""
+    from vslam.errors import ConfigError
+
+    if runtime == "torch":
+        return torch_maps(model)
+    if runtime == "onnxruntime":
+        from vslam.nn.keypoints.alike_onnx import OnnxMaps
+
+        return OnnxMaps(model)
+    raise ConfigError(f"slam.features.runtime: unknown {runtime!r} (known: {', '.join(RUNTIMES)})")
+
+
 def to_rgb(image: np.ndarray) -> np.ndarray:
     """BGR (OpenCV's order, as the readers give) or grey -> RGB, the published network's input."""
     if image.ndim == 2:
@@ -57,7 +83,8 @@ def to_rgb(image: np.ndarray) -> np.ndarray:
 
 @torch.inference_mode()
 def extract(model: torch.nn.Module, image: np.ndarray, n: int, scale: float = 1.0, mask: np.ndarray | None = None,
-            select: Select | None = None, oversample: float = 3.0, min_score: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            select: Select | None = None, oversample: float = 3.0, min_score: float = 0.0, maps: Maps | None = None,
+            lap: Callable[[str], None] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Keypoints of one uint8 image (H,W,3) BGR or (H,W) grey -> (xy (N,2) float64 pixels of ``image``, score (N,)
     float64, desc (N,D) float32 unit), N <= n.
 
@@ -65,15 +92,19 @@ def extract(model: torch.nn.Module, image: np.ndarray, n: int, scale: float = 1.
     keypoints are not wanted; ``select(xy, score, shape)`` -> indices to keep among ``oversample * n`` candidates
     (xy in network pixels, shape the network image's (h, w)); without it, the ``n`` strongest by descending score.
     ``min_score``: only maxima scoring above it are keypoints (the benchmarks keep every maximum; SLAM does not).
+    ``maps``: what computes the levels and the score map (``make_maps``); None: ``model`` in torch.
+    ``lap(step)``: called as each step ends (prep, network, nms, select, refine, describe): the speed bench's timer.
     """
+    lap = lap or (lambda step: None)
     h0, w0 = image.shape[:2]
     rgb = to_rgb(image)
     if scale != 1.0:
         rgb = cv2.resize(rgb, (max(1, round(w0 * scale)), max(1, round(h0 * scale))), interpolation=cv2.INTER_AREA)
     h, w = rgb.shape[:2]
     x = torch.from_numpy(rgb).permute(2, 0, 1)[None].float().div_(255.0).contiguous(memory_format=torch.channels_last)
-    levels = model.levels(x)
-    smap = model.score_map(levels, (h, w))[0, 0]
+    lap("prep")
+    levels, smap = (maps or torch_maps(model))(x, (h, w))
+    lap("network")
     if mask is not None:
         small = mask if (h, w) == (h0, w0) else cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
         smap = smap.masked_fill(torch.from_numpy(small), 0.0)  # a masked pixel is never a maximum above zero
@@ -81,14 +112,18 @@ def extract(model: torch.nn.Module, image: np.ndarray, n: int, scale: float = 1.
     idx, val = model.candidates(smap, k)
     keep_nz = val > max(min_score, 0.0)  # top-k on a sparse map also returns zeros: not keypoints
     idx, val = idx[keep_nz], val[keep_nz]
+    lap("nms")
     if select is not None and len(idx) > n:
         xy_int = torch.stack([idx % w, idx // w], 1).numpy().astype(np.float64)
         pick = torch.from_numpy(np.asarray(select(xy_int, val.numpy().astype(np.float64), (h, w)), np.int64))
         idx = idx[pick]
     else:
         idx = idx[:n]
+    lap("select")
     xy, score = model.refine(smap, idx)
+    lap("refine")
     desc = model.describe(levels, xy, (h, w))
+    lap("describe")
     xy_np = xy.numpy().astype(np.float64)
     if (h, w) != (h0, w0):  # pixel centres: x_full + 0.5 = (x + 0.5) * w0 / w
         xy_np = (xy_np + 0.5) * np.array([w0 / w, h0 / h]) - 0.5
@@ -101,21 +136,23 @@ class AlikeExtractor:
     ``min_score``, spread over the ``grid_cols`` x ``grid_rows`` grid like ORB's (``orb.bucket``), float
     descriptors matched by L2 (``features.matching``). The floor matters: the grid otherwise fills plain cells with
     weak, poorly placed maxima, and SLAM's accuracy falls as they are added (docs/features.md). The network runs on
-    the CPU (``features.device`` is ConvPoint's); it is small enough that a GPU was never measured for it."""
+    the CPU (``features.device`` is ConvPoint's); it is small enough that a GPU was never measured for it. Its dense
+    part runs in torch or onnxruntime (``features.runtime``)."""
 
     descriptor_kind = "float"
 
     def __init__(self, cfg: FeatureConfig):
         self.cfg = cfg
         self.model = load_alike(cfg.extractor, cfg.weights)
+        self.maps = make_maps(self.model, cfg.runtime)
 
-    def _select(self, xy: np.ndarray, score: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    def select(self, xy: np.ndarray, score: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         from vslam.features.orb import bucket
 
         return bucket(xy, score, shape, self.cfg.n_features, self.cfg.grid_cols, self.cfg.grid_rows)
 
     def detect(self, image: np.ndarray, camera: PinholeCamera, mask: np.ndarray | None = None) -> Features:
-        xy, score, desc = extract(self.model, image, self.cfg.n_features, self.cfg.input_scale, mask, self._select,
-                                  self.cfg.oversample, self.cfg.min_score)
+        xy, score, desc = extract(self.model, image, self.cfg.n_features, self.cfg.input_scale, mask, self.select,
+                                  self.cfg.oversample, self.cfg.min_score, self.maps)
         return Features(raw=xy, uv=camera.undistort_points(xy), desc=desc, octave=np.zeros(len(xy), np.int64),
                         response=score, scale_factor=self.cfg.scale_factor)

@@ -54,6 +54,9 @@ class FeatureConfig:
     # vslam/models/alike_<variant>.pt.
     input_scale: float = 1.0
     min_score: float = 0.2  # alike-*: score floor of a keypoint (the published code's threshold)
+    # alike-*: what runs the network's dense part, "torch" or "onnxruntime" (the same maps to float rounding; faster
+    # on two threads of a loaded machine, the same on one: docs/features.md)
+    runtime: str = "torch"
 
     def __post_init__(self) -> None:
         if self.n_features < 1:
@@ -63,6 +66,8 @@ class FeatureConfig:
                               f"{self.scale_factor}")
         if not 0.0 < self.input_scale <= 1.0:
             raise ConfigError(f"slam.features.input_scale must be in (0, 1], got {self.input_scale}")
+        if self.runtime not in ("torch", "onnxruntime"):
+            raise ConfigError(f"slam.features.runtime must be torch or onnxruntime, got {self.runtime!r}")
 
 
 @dataclass

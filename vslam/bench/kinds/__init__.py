@@ -34,6 +34,7 @@ KINDS: dict[str, Kind] = {
     "speed": Kind(_K + "speed:job", _K + "speed:table"),
     "detector_speed": Kind(_K + "detector_speed:job", _K + "detector_speed:table"),
     "line_ba": Kind(_K + "speed:job_line_ba", _K + "speed:line_ba_table"),
+    "extraction": Kind(_K + "extraction:job", _K + "extraction:table"),
     "sfm": Kind(_K + "sfm:job", _K + "sfm:table"),
     "batch": Kind("", "vslam.bench.batch:batch_table"),  # its own serial / pool / Ray passes of run jobs
     "ab": Kind("", "vslam.bench.batch:ab_table"),  # run jobs without and with the treatment
