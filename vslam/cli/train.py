@@ -1,4 +1,4 @@
-"""``vslam train <model>``: detector, convert-yolox, keypoints, place, yolox-masks. The options every trainer
+"""``vslam train <model>``: detector, convert-yolox, keypoints, place, yolox, yolox-masks. The options every trainer
 shares, and each trainer's command over its library ``train`` (argparse only: torch is imported when one runs)."""
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ def add_cli(train_sub: argparse._SubParsersAction) -> None:
     _add_detector(train_sub)
     _add_place(train_sub)
     _add_keypoints(train_sub)
+    _add_yolox(train_sub)
     _add_yolox_masks(train_sub)
 
 
@@ -129,5 +130,20 @@ def cmd_train_yolox_masks(args: argparse.Namespace) -> int:
 
     with progress_bar("training", unit="it", quiet=args.quiet) as bar:
         metrics = train(train_config(MaskTrainConfig, args), progress=bar)
+    print(json.dumps(metrics, indent=2))
+    return 0
+
+
+def _add_yolox(train_sub: argparse._SubParsersAction) -> None:
+    add_train_parser(train_sub, "yolox", "fine-tune the YOLOX-style detector from the converted public weights (CPU)",
+                     "YoloxTrainConfig", "iterations=600", "last.pt, model.pt, log.csv, metrics.json", cmd_train_yolox)
+
+
+def cmd_train_yolox(args: argparse.Namespace) -> int:
+    from vslam.dynamic.yolox_train import YoloxTrainConfig, train
+    from vslam.progress import progress_bar
+
+    with progress_bar("training", unit="it", quiet=args.quiet) as bar:
+        metrics = train(train_config(YoloxTrainConfig, args), progress=bar)
     print(json.dumps(metrics, indent=2))
     return 0

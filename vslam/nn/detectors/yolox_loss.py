@@ -73,10 +73,13 @@ def simota(boxes: torch.Tensor, cls_logits: torch.Tensor, obj_logits: torch.Tens
 
 
 def yolox_loss(out: dict[str, torch.Tensor], targets: list[tuple[torch.Tensor, torch.Tensor]],
-               size: tuple[int, int], obj_weight: float = 1.0, box_weight: float = 5.0) -> dict[str, torch.Tensor]:
+               size: tuple[int, int], obj_weight: float = 1.0, box_weight: float = 5.0,
+               ignore: list[torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
     """``out``: a YOLOX forward pass (``logits`` (B, A, 5 + nc), ``boxes`` (B, A, 4)) of inputs of ``size`` (h, w);
     ``targets`` per image: (gt boxes (G, 4) input pixels, classes (G,) long) -> {"loss", "box", "obj", "cls",
-    "fg"} (Megvii's weights: box 5, objectness and class 1)."""
+    "fg"} (Megvii's weights: box 5, objectness and class 1). ``ignore`` per image: (J, 4) regions (KITTI
+    DontCare, as COCO crowd boxes): an anchor not assigned to a box whose cell centre lies inside one has no
+    objectness loss (neither object nor background)."""
     from vslam.nn.detectors.yolox import STRIDES, grid
 
     logits, boxes = out["logits"], out["boxes"]
@@ -100,7 +103,13 @@ def yolox_loss(out: dict[str, torch.Tensor], targets: list[tuple[torch.Tensor, t
         cls_t = F.one_hot(gc[gt_of[fg]], logits.shape[2] - 5).float() * ious[fg, None]
         cls_l = cls_l + F.binary_cross_entropy_with_logits(logits[i, fg, 5:], cls_t, reduction="sum")
     n = max(n_fg, 1)
-    obj_l = F.binary_cross_entropy_with_logits(logits[..., 4], obj_t, reduction="sum")
+    obj_w = torch.ones_like(obj_t)
+    for i, g in enumerate(ignore or []):
+        if len(g):
+            c = centres + stride[:, None] / 2
+            inside = ((c[:, None] > g[None, :, :2]) & (c[:, None] < g[None, :, 2:])).all(-1).any(1)
+            obj_w[i, inside & (obj_t[i] == 0)] = 0.0
+    obj_l = F.binary_cross_entropy_with_logits(logits[..., 4], obj_t, weight=obj_w, reduction="sum")
     box_l, obj_l, cls_l = box_l / n, obj_l / n, cls_l / n
     return {"loss": box_weight * box_l + obj_weight * obj_l + cls_l, "box": box_l.detach(), "obj": obj_l.detach(),
             "cls": cls_l.detach(), "fg": torch.tensor(n_fg)}
