@@ -59,6 +59,20 @@ def test_unknown_method_is_one_line():
         standard_methods(100, ("orb", "surf"))
 
 
+def test_alike_method_on_onnxruntime_gives_torch_keypoints():
+    """"alike-t@0.5+onnxruntime": the same network with its dense part in onnxruntime, the same keypoints."""
+    pytest.importorskip("onnxruntime")
+    cv2 = pytest.importorskip("cv2")
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.standard_normal((240, 320)).astype(np.float32), (0, 0), 2.0)
+    img = ((img - img.min()) / (img.max() - img.min()) * 255).astype(np.uint8)
+    m = standard_methods(300, ("alike-t@0.5", "alike-t@0.5+onnxruntime"))
+    (xa, da), (xb, db) = m["alike-t@0.5"](img), m["alike-t@0.5+onnxruntime"](img)
+    assert len(xa) == len(xb) > 100
+    same = np.linalg.norm(xa - xb, axis=1) < 1e-3  # near-equal scores may swap places in the order
+    assert same.mean() > 0.95 and (da[same] * db[same]).sum(1).min() > 0.9999
+
+
 def test_table_lists_every_method_and_set():
     res = {"kitti_k1": {"orb": {"auc@5": 40.0, "auc@10": 60.0, "auc@20": 80.0}},
            "ms": {"kitti": {"orb": 9.6}}, "n_keypoints": 2000, "ransac_px": 1.0, "threads": 1, "seconds": 3.0}

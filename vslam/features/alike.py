@@ -81,6 +81,17 @@ def to_rgb(image: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
+def network_input(image: np.ndarray, scale: float = 1.0) -> torch.Tensor:
+    """uint8 (H,W,3) BGR or (H,W) grey -> the network's (1,3,h,w) float32 RGB in [0,1], h, w = H, W x ``scale``
+    (area interpolation), channels-last. Built in numpy (one thread): a view of an (h,w,3) array is already
+    channels-last, and torch's own ops would start its thread team for a few hundred kilobytes."""
+    h0, w0 = image.shape[:2]
+    rgb = to_rgb(image)
+    if scale != 1.0:
+        rgb = cv2.resize(rgb, (max(1, round(w0 * scale)), max(1, round(h0 * scale))), interpolation=cv2.INTER_AREA)
+    return torch.from_numpy(np.divide(rgb, np.float32(255.0), dtype=np.float32)).permute(2, 0, 1)[None]
+
+
 @torch.inference_mode()
 def extract(model: torch.nn.Module, image: np.ndarray, n: int, scale: float = 1.0, mask: np.ndarray | None = None,
             select: Select | None = None, oversample: float = 3.0, min_score: float = 0.0, maps: Maps | None = None,
@@ -97,11 +108,8 @@ def extract(model: torch.nn.Module, image: np.ndarray, n: int, scale: float = 1.
     """
     lap = lap or (lambda step: None)
     h0, w0 = image.shape[:2]
-    rgb = to_rgb(image)
-    if scale != 1.0:
-        rgb = cv2.resize(rgb, (max(1, round(w0 * scale)), max(1, round(h0 * scale))), interpolation=cv2.INTER_AREA)
-    h, w = rgb.shape[:2]
-    x = torch.from_numpy(rgb).permute(2, 0, 1)[None].float().div_(255.0).contiguous(memory_format=torch.channels_last)
+    x = network_input(image, scale)
+    h, w = x.shape[-2:]
     lap("prep")
     levels, smap = (maps or torch_maps(model))(x, (h, w))
     lap("network")

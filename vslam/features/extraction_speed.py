@@ -85,7 +85,7 @@ def time_set(s: SpeedSet, repeats: int = 3, runtimes: tuple[str, ...] = ("torch"
     "layers": {layer: ms}, "keypoints": {method: mean count}, "match_ms": {"float"|"binary": median ms per call},
     "matches": {...: mean pairs}, "size": "WxH", "frames": n}. ALIKE methods are named "<extractor> <runtime>"."""
     from vslam.features import make_extractor
-    from vslam.features.alike import AlikeExtractor, extract
+    from vslam.features.alike import AlikeExtractor, extract, network_input
     from vslam.features.matching import match_by_projection
 
     cfg = s.alike
@@ -126,7 +126,7 @@ def time_set(s: SpeedSet, repeats: int = 3, runtimes: tuple[str, ...] = ("torch"
                 if rep == 0 and name == next(iter(alikes)):
                     feats["alike"].append((s.camera.undistort_points(xy), desc))
             ext0 = next(iter(alikes.values()))
-            x = _network_input(im, cfg.input_scale)
+            x = network_input(im, cfg.input_scale)
             for k, v in layer_ms(ext0.model, x).items():
                 layers.setdefault(k, []).append(v)
 
@@ -149,19 +149,6 @@ def time_set(s: SpeedSet, repeats: int = 3, runtimes: tuple[str, ...] = ("torch"
             "keypoints": {k: float(np.mean(v)) for k, v in counts.items()}, "match_ms": _median(match_ms),
             "matches": {k: float(np.mean(v)) for k, v in matches.items()}, "size": f"{w}x{h}",
             "frames": len(s.images), "n_features": cfg.n_features, "input_scale": cfg.input_scale}
-
-
-def _network_input(image: np.ndarray, scale: float) -> torch.Tensor:
-    """The (1,3,h,w) channels-last tensor ``alike.extract`` gives the network."""
-    import cv2
-
-    from vslam.features.alike import to_rgb
-
-    rgb = to_rgb(image)
-    if scale != 1.0:
-        h0, w0 = image.shape[:2]
-        rgb = cv2.resize(rgb, (max(1, round(w0 * scale)), max(1, round(h0 * scale))), interpolation=cv2.INTER_AREA)
-    return torch.from_numpy(rgb).permute(2, 0, 1)[None].float().div_(255.0).contiguous(memory_format=torch.channels_last)
 
 
 def extraction_speed(sets: list[SpeedSet], repeats: int = 3, threads: int = 2,

@@ -205,7 +205,11 @@ def _best_pairs_float(valid: np.ndarray, ki: np.ndarray, pt_desc: np.ndarray, kp
     flat = np.flatnonzero(valid)
     pi = flat // valid.shape[1]
     kv = ki.ravel()[flat].astype(np.int64)
-    d = BITS_PER_L2 * np.linalg.norm(np.take(pt_desc, pi, axis=0) - np.take(kp_desc, kv, axis=0), axis=1)
+    # np.linalg.norm's own arithmetic (x * x, add.reduce over the row, sqrt), in place: the same float32 distances
+    diff = np.take(pt_desc, pi, axis=0)
+    diff -= np.take(kp_desc, kv, axis=0)
+    diff *= diff
+    d = BITS_PER_L2 * np.sqrt(np.add.reduce(diff, axis=1))
     D = np.full(valid.shape, np.inf)
     D.ravel()[flat] = d.astype(np.float64)
     T = np.full(valid.shape, big, np.int64)

@@ -161,7 +161,8 @@ def pose_benchmark(methods: dict[str, Method], root: Path, cfg: PoseBenchConfig 
 
 def standard_methods(n: int, names: tuple[str, ...]) -> dict[str, Method]:
     """Methods by name: "orb", "sift" (OpenCV, grey), "convpoint" (int8), "alike-t" / "alike-s" / "alike-n" at full resolution,
-    "<alike>@0.5" at half (the shipped weights, descriptors at the keypoints only)."""
+    "<alike>@0.5" at half (the shipped weights, descriptors at the keypoints only), "<alike>[@s]+onnxruntime" with the
+    network's dense part in onnxruntime (``features.runtime``)."""
     from vslam.errors import ConfigError
     from vslam.features.evaluate import orb_method, sift_method
 
@@ -170,7 +171,8 @@ def standard_methods(n: int, names: tuple[str, ...]) -> dict[str, Method]:
 
     out: dict[str, Method] = {}
     for name in names:
-        base, _, scale = name.partition("@")
+        head, _, runtime = name.partition("+")
+        base, _, scale = head.partition("@")
         if base == "orb":
             out[name] = grey(orb_method(n))
         elif base == "sift":
@@ -183,13 +185,14 @@ def standard_methods(n: int, names: tuple[str, ...]) -> dict[str, Method]:
 
             out[name] = grey(convpoint_method(load_convpoint(default_weights(), int8=True), n, torch.device("cpu")))
         elif base in ("alike-t", "alike-s", "alike-n"):
-            from vslam.features.alike import extract, load_alike
+            from vslam.features.alike import extract, load_alike, make_maps
 
             model, s = load_alike(base), float(scale or 1.0)
-            out[name] = (lambda model, s: lambda im: extract(model, im, n, s)[::2])(model, s)
+            maps = make_maps(model, runtime or "torch")
+            out[name] = (lambda model, s, maps: lambda im: extract(model, im, n, s, maps=maps)[::2])(model, s, maps)
         else:
             raise ConfigError(f"pose bench: unknown method {name!r} (known: orb, sift, convpoint, alike-t, alike-s, alike-n, "
-                              f"with @<scale> for the ALIKE ones)")
+                              f"with @<scale> and +onnxruntime for the ALIKE ones)")
     return out
 
 
