@@ -60,27 +60,43 @@ def test_camera_models():
     assert sfm._camera_model(fish)[0] == "OPENCV_FISHEYE" and len(sfm._camera_model(fish)[1]) == 8
 
 
-def test_cached_reference_is_read_back_without_running_sfm(tmp_path, monkeypatch):
+def _cfg(**dataset):
     from vslam.pipeline import PipelineConfig
 
-    cfg = PipelineConfig.load(None, {"dataset": {"kind": "synthetic", "sensor": "mono", "synthetic": {"n_frames": 5}}})
-    gt = _drive(5)
-    calls = []
+    return PipelineConfig.load(None, {"dataset": {"kind": "synthetic", "sensor": "mono", "synthetic": {"n_frames": 6},
+                                                  **dataset}})
 
-    def fake(cfg_, opts, folder):
-        calls.append(folder)
-        return gt, {"frames": 5, "registered": 5}
 
-    monkeypatch.setattr(sfm, "_run_sfm", fake)
-    a, info_a = sfm.sfm_reference(cfg, sfm.SfmOptions(), tmp_path)
-    b, info_b = sfm.sfm_reference(cfg, sfm.SfmOptions(rel_lengths=(5.0,)), tmp_path)  # metric options: same key
-    assert len(calls) == 1 and not info_a["cached"] and info_b["cached"]
+def test_cache_keys_and_shared_database(tmp_path, monkeypatch):
+    """A result is read back without running SfM; metric options share the key, SfM settings and frame
+    selections do not; a later start maps from the whole recording's database, restricted to its frames."""
+    gt = _drive(6)
+    databases, mapped = [], []
+
+    def fake_database(dataset, opts, folder):
+        databases.append(folder.name)
+        return {f"{i:06d}.png": float(t) for i, t in enumerate(gt.timestamps)}
+
+    def fake_map(db, names, stamps, opts, folder):
+        mapped.append((db.parent.name, folder.name, names))
+        idx = [int(n[:6]) for n in names]
+        return gt.subset(np.array(idx)), {"frames": len(names), "registered": len(names)}
+
+    monkeypatch.setattr(sfm, "_database", fake_database)
+    monkeypatch.setattr(sfm, "_map", fake_map)
+    a, info_a = sfm.sfm_reference(_cfg(), sfm.SfmOptions(), tmp_path)
+    b, info_b = sfm.sfm_reference(_cfg(), sfm.SfmOptions(rel_lengths=(5.0,)), tmp_path)  # metric options: same key
+    assert len(mapped) == 1 and not info_a["cached"] and info_b["cached"]
     np.testing.assert_allclose(b.poses, gt.poses, atol=1e-6)
-    sfm.sfm_reference(cfg, sfm.SfmOptions(overlap=5), tmp_path)  # another SfM setting: another key
-    other = PipelineConfig.load(None, {"dataset": {"kind": "synthetic", "sensor": "mono", "drop": [[0, 1]],
-                                                   "synthetic": {"n_frames": 5}}})
-    sfm.sfm_reference(other, sfm.SfmOptions(), tmp_path)  # other frames: another key
-    assert len(calls) == 3 and len(set(calls)) == 3
+    sfm.sfm_reference(_cfg(), sfm.SfmOptions(overlap=5), tmp_path)  # another SfM setting: another key
+    later, _ = sfm.sfm_reference(_cfg(drop=[[0, 1]]), sfm.SfmOptions(), tmp_path)  # a later start
+    gap, _ = sfm.sfm_reference(_cfg(drop=[[2, 3]]), sfm.SfmOptions(), tmp_path)  # a gap: frames of its own
+    assert len(mapped) == 4 and len({m[1] for m in mapped}) == 4
+    whole = mapped[0][0]
+    assert mapped[2][0] == whole and mapped[2][2] == [f"{i:06d}.png" for i in range(2, 6)]  # the whole's database
+    assert mapped[3][0] == mapped[3][1] != whole and mapped[3][2] == [f"{i:06d}.png" for i in (0, 1, 4, 5)]
+    np.testing.assert_allclose(later.timestamps, gt.timestamps[2:])
+    assert sfm._key(_cfg().dataset, sfm.SfmOptions()) == whole
 
 
 def test_table():
