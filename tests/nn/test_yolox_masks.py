@@ -52,6 +52,12 @@ def test_mask_head_shapes():
 def test_registry_entry_and_conf_errors():
     m = DETECTORS.build("yolox-nano-masks", {"classes": ["person"], "mask": {"roi": 7, "side": 28}})
     assert isinstance(m, YOLOXMasks) and m.conf["mask"]["side"] == 28 and m.conf["mask"]["margin"] == 0.1
+    deeper = DETECTORS.build("yolox-nano-masks", {**SMALL, "mask": {"refine_convs": 2}}).eval()
+    with torch.no_grad():
+        out = deeper({"image": torch.zeros(1, 3, 64, 64), "mask_boxes": [torch.tensor([[4.0, 6.0, 40.0, 60.0]])]})
+    assert out["mask_logits"].shape == (1, 56, 56) and len(deeper.mask_head.more1) == 1
+    with pytest.raises(ConfigError, match="threshold must be in"):
+        YOLOXMasks({**SMALL, "mask": {"threshold": 1.0}})
     with pytest.raises(ConfigError, match="side must be 4 x roi"):
         YOLOXMasks({**SMALL, "mask": {"roi": 7, "side": 32}})
     with pytest.raises(ConfigError, match="unknown key 'sid'"):

@@ -39,6 +39,7 @@ from vslam.progress import Progress
 
 log = logging.getLogger(__name__)
 ARCH = "yolox-nano-masks"
+THRESHOLDS = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8)  # mask probability cuts tried by ``pick_threshold``
 
 
 @dataclass(frozen=True)
@@ -73,6 +74,7 @@ class MaskTrainConfig:
     log_every: int = 20
     weights: str = ""  # also write the final model here (float16), e.g. vslam/models/<name>.pt
     evaluate: bool = True  # mask IoU on Penn-Fudan val at the end
+    pick_threshold: bool = True  # ... after choosing the mask threshold on Penn-Fudan train (``THRESHOLDS``)
     resume: bool = False
     device: str = "cpu"  # cpu | cuda | auto
     toy: bool = False
@@ -95,7 +97,7 @@ TOY = dict(img_size=128, batch=2, iterations=30, ckpt_every=10, log_every=5, war
 def _recipe(cfg: dict) -> dict:
     """What a resumed run must share with the first: everything but where / how long / how it is reported."""
     return {k: v for k, v in cfg.items() if k not in ("out", "iterations", "resume", "evaluate", "weights", "ckpt_every",
-                                                      "log_every", "threads", "device")}
+                                                      "log_every", "threads", "device", "pick_threshold")}
 
 
 # --- data ----------------------------------------------------------------------------------------------------
@@ -356,12 +358,57 @@ def train(cfg: MaskTrainConfig, progress: Progress | None = None) -> dict[str, A
     model.eval()
     metrics: dict[str, Any] = {}
     if cfg.evaluate:
-        metrics = evaluate_penn_fudan(YoloxDetector(model.cpu(), img_size=int(model.conf["input_size"]), conf=0.001))
+        model = model.cpu()
+        if cfg.pick_threshold:
+            t, ious = pick_threshold(YoloxDetector(model, img_size=int(model.conf["input_size"])), cfg.penn_fudan)
+            model.conf["mask"]["threshold"] = t
+            metrics["threshold_train_iou"] = ious
+        metrics.update(evaluate_penn_fudan(YoloxDetector(model, img_size=int(model.conf["input_size"]), conf=0.001)))
     _save(model, out / "model.pt", cfg, meta={"metrics": metrics})
     if cfg.weights:
         _save(model, cfg.weights, cfg, meta={"metrics": metrics})
     (out / "metrics.json").write_text(json.dumps({"loss": loss_v, "eval": metrics}, indent=2))
     return {"loss": loss_v, "eval": metrics}
+
+
+def _prompted(det: Any, root: str, split: str) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """Per Penn-Fudan ``split`` image: (logits, regions, true masks, image shape) of its people with a true mask,
+    the head prompted with their true boxes."""
+    from vslam.dynamic.datasets import load_records
+    from vslam.paths import data_root
+
+    path = Path(root) if Path(root).is_absolute() else data_root() / root
+    _, records = load_records(path, split)  # type: ignore[arg-type]
+    out = []
+    for rec in records:
+        gm = rec.masks()
+        if gm is None or not (rec.mask_ids > 0).any():
+            continue
+        has = rec.mask_ids > 0
+        img = rec.image()
+        logits, regions = det.prompted_logits(img, rec.boxes[has])
+        out.append((logits, regions, gm[has], np.array(img.shape[:2])))
+    return out
+
+
+def _mean_iou(cases: list[tuple[np.ndarray, ...]], cut: float) -> tuple[float, int]:
+    from vslam.dynamic.yolox_detector import paste_masks
+
+    ious = []
+    for logits, regions, gm, shape in cases:
+        pm = paste_masks(logits, regions, (int(shape[0]), int(shape[1])), cut)[0]
+        ious += [float((a & b).sum() / max((a | b).sum(), 1)) for a, b in zip(pm, gm)]
+    return (float(np.mean(ious)) if ious else float("nan")), len(ious)
+
+
+def pick_threshold(det: Any, root: str = "penn_fudan/PennFudanPed") -> tuple[float, dict[str, float]]:
+    """The mask probability cut of ``THRESHOLDS`` with the best prompted mask IoU on Penn-Fudan train (never val)
+    -> (threshold, {threshold: IoU})."""
+    cases = _prompted(det, root, "train")
+    ious = {f"{t:g}": _mean_iou(cases, float(np.log(t / (1 - t))))[0] for t in THRESHOLDS}
+    best = max(THRESHOLDS, key=lambda t: ious[f"{t:g}"])
+    log.info("mask threshold %g (Penn-Fudan train prompted IoU by threshold: %s)", best, ious)
+    return float(best), ious
 
 
 def evaluate_penn_fudan(det: Any, root: str = "penn_fudan", split: str = "val") -> dict[str, Any]:
@@ -373,20 +420,12 @@ def evaluate_penn_fudan(det: Any, root: str = "penn_fudan", split: str = "val") 
     from vslam.dynamic.eval_detector import evaluate, predict
     from vslam.paths import data_root
 
+    iou, n = _mean_iou(_prompted(det, root, split), det.mask_cut())
     path = Path(root) if Path(root).is_absolute() else data_root() / root
     _, records = load_records(path, split)  # type: ignore[arg-type]
-    ious = []
-    for rec in records:
-        gm = rec.masks()
-        if gm is None:
-            continue
-        pm = det.masks_for(rec.image(), rec.boxes)
-        for a, b, i in zip(pm, gm, rec.mask_ids):
-            if i > 0:
-                ious.append(float((a & b).sum() / max((a | b).sum(), 1)))
     rep = evaluate(records, predict(det, records), DynamicConfig().score_threshold)
     keep = {k: v for k, v in rep.items() if k.endswith("/person") and (k.startswith(("mask_iou", "box_mask_iou", "n_masks",
                                                                                       "gt_box_mask_iou", "AP50/")))}
     keep = {k: float(v) if isinstance(v, (float, np.floating)) else int(v) for k, v in keep.items()}  # plain types:
     # the metrics go into checkpoints that are read weights-only
-    return {"prompted_mask_iou/person": float(np.mean(ious)) if ious else float("nan"), "n_prompted": len(ious), **keep}
+    return {"prompted_mask_iou/person": iou, "n_prompted": n, "threshold": float(det.model.conf["mask"]["threshold"]), **keep}

@@ -94,16 +94,29 @@ class YoloxDetector:
         return Detections(b, s.cpu().numpy().astype(np.float64), ids,
                           np.array([self.names[i] for i in ids], dtype=object), masks, mask_px)
 
-    @torch.inference_mode()
     def masks_for(self, image: np.ndarray, boxes: np.ndarray) -> np.ndarray:
         """(K, H, W) bool masks of the mask head prompted with ``boxes`` (K, 4) image pixels instead of the
         detector's own (the teacher's protocol: true boxes in, masks out)."""
+        logits, regions = self.prompted_logits(image, boxes)
+        return paste_masks(logits, regions, image.shape[:2], self.mask_cut())[0]
+
+    @torch.inference_mode()
+    def prompted_logits(self, image: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The mask head's logit maps (K, S, S) for ``boxes`` (K, 4) image pixels, and their regions (K, 4) image
+        pixels (the grown boxes)."""
         if not self.has_masks:
             raise ConfigError("this detector has no mask head (a boxes-only checkpoint)")
         x, r = self._input(image)
         out = self.model({"image": x})
         bt = torch.as_tensor(np.asarray(boxes, np.float64).reshape(-1, 4) * r, dtype=torch.float32, device=self.device)
-        return self._masks(out["feats"], x, bt, r, image.shape[:2])[0]
+        rois = self.model.rois([bt])
+        logits = self.model.mask_logits(out["feats"], x, rois).float().cpu().numpy()
+        return logits, rois[:, 1:].cpu().numpy().astype(np.float64) / r
+
+    def mask_cut(self) -> float:
+        """The logit the masks are cut at: the head's probability ``threshold``."""
+        t = float(self.model.conf["mask"]["threshold"])
+        return float(np.log(t / (1 - t)))
 
     def _masks(self, feats: tuple[torch.Tensor, ...], x: torch.Tensor, boxes: torch.Tensor, r: float,
                shape: tuple[int, int]) -> tuple[np.ndarray, float]:
@@ -111,13 +124,14 @@ class YoloxDetector:
         mean image pixels one mask cell spans (``Detections.mask_px``)."""
         rois = self.model.rois([boxes])
         logits = self.model.mask_logits(feats, x, rois).float().cpu().numpy()
-        return paste_masks(logits, rois[:, 1:].cpu().numpy().astype(np.float64) / r, shape)
+        return paste_masks(logits, rois[:, 1:].cpu().numpy().astype(np.float64) / r, shape, self.mask_cut())
 
 
-def paste_masks(logits: np.ndarray, regions: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, float]:
+def paste_masks(logits: np.ndarray, regions: np.ndarray, shape: tuple[int, int],
+                cut: float = 0.0) -> tuple[np.ndarray, float]:
     """Mask logit maps (K, S, S), each over its region (K, 4) x1, y1, x2, y2 image pixels, into the image: (K, H, W)
-    bool, True where the bilinearly resized logit is above 0 (probability 0.5); nothing outside the region. Also
-    the mean region side / S (image pixels per mask cell)."""
+    bool, True where the bilinearly resized logit is above ``cut`` (0: probability 0.5); nothing outside the
+    region. Also the mean region side / S (image pixels per mask cell)."""
     H, W = shape
     out = np.zeros((len(logits), H, W), bool)
     if not len(logits):
@@ -133,6 +147,6 @@ def paste_masks(logits: np.ndarray, regions: np.ndarray, shape: tuple[int, int])
         # the region's outermost half cell lies beyond the map's outer cell centres: the edge cells hold there
         win = cv2.warpAffine(lg.astype(np.float32), A, (c1 - c0, r1 - r0), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                              borderMode=cv2.BORDER_REPLICATE)
-        out[k, r0:r1, c0:c1] = win > 0
+        out[k, r0:r1, c0:c1] = win > cut
     side = np.maximum(regions[:, 2] - regions[:, 0], regions[:, 3] - regions[:, 1])
     return out, float(np.mean(side) / S)

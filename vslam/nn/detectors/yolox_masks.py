@@ -31,7 +31,9 @@ MASK_DEFAULTS: dict[str, Any] = {
     "side": 56,  # side of the predicted mask logit map (the image branch's RoIAlign side)
     "channels": 32,  # width of the feature branch
     "image_channels": 16,  # width of the image branch
+    "refine_convs": 1,  # 3x3 convolutions per upsampled level (side / 2, side)
     "margin": 0.1,  # the head's region: the box grown by this fraction of its width / height on every side
+    "threshold": 0.5,  # mask probability cut at inference (the trainer picks it on Penn-Fudan train)
 }
 
 
@@ -49,7 +51,7 @@ class BoxMaskHead(nn.Module):
     """feats P3 (B, C3, H/8, W/8), image (B, 3, H, W) BGR 0..255, rois (K, 5) (batch index, x1, y1, x2, y2 input
     pixels, the grown boxes) -> mask logits (K, side, side) over each roi."""
 
-    def __init__(self, c3: int, roi: int, side: int, channels: int, image_channels: int):
+    def __init__(self, c3: int, roi: int, side: int, channels: int, image_channels: int, refine_convs: int = 1):
         super().__init__()
         if side != 4 * roi:
             raise ConfigError(f"YOLOX mask head: side must be 4 x roi (two 2x upsamplings), got side {side}, roi {roi}")
@@ -60,6 +62,11 @@ class BoxMaskHead(nn.Module):
         self.img2 = _conv(ci, ci, 2)  # at side / 2
         self.up1 = _conv(c + ci, c // 2)  # at side / 2
         self.up2 = _conv(c // 2 + ci, ci)  # at side
+        if refine_convs < 1:
+            raise ConfigError(f"YOLOX mask head: refine_convs must be >= 1, got {refine_convs}")
+        # further convolutions per level (none at 1: the layers above are the whole head)
+        self.more1 = nn.Sequential(*[_conv(c // 2, c // 2) for _ in range(refine_convs - 1)])
+        self.more2 = nn.Sequential(*[_conv(ci, ci) for _ in range(refine_convs - 1)])
         self.out = nn.Conv2d(ci, 1, 1)
 
     def forward(self, p3: torch.Tensor, image: torch.Tensor, rois: torch.Tensor) -> torch.Tensor:
@@ -71,8 +78,8 @@ class BoxMaskHead(nn.Module):
         g1 = self.img1(g)
         g2 = self.img2(g1)
         f = self.feat(f)
-        f = self.up1(torch.cat([F.interpolate(f, scale_factor=2.0, mode="bilinear", align_corners=False), g2], 1))
-        f = self.up2(torch.cat([F.interpolate(f, scale_factor=2.0, mode="bilinear", align_corners=False), g1], 1))
+        f = self.more1(self.up1(torch.cat([F.interpolate(f, scale_factor=2.0, mode="bilinear", align_corners=False), g2], 1)))
+        f = self.more2(self.up2(torch.cat([F.interpolate(f, scale_factor=2.0, mode="bilinear", align_corners=False), g1], 1)))
         return self.out(f)[:, 0]
 
 
@@ -84,7 +91,7 @@ class YOLOXMasks(YOLOX):
     """``YOLOX`` with a box-prompted mask head (module docstring).
 
     conf: YOLOX's, plus ``mask`` (``MASK_DEFAULTS``: ``roi``, ``side``, ``channels``, ``image_channels``,
-    ``margin``). Inputs: YOLOX's ``image`` and optionally ``mask_boxes``: a list of B (K_b, 4) tensors of x1, y1,
+    ``refine_convs``, ``margin``, ``threshold``). Inputs: YOLOX's ``image`` and optionally ``mask_boxes``: a list of B (K_b, 4) tensors of x1, y1,
     x2, y2 input pixels (the detector's kept boxes at inference, the true boxes in training). Outputs: YOLOX's
     (unchanged), plus ``feats`` (the three neck outputs the box head read) and, with ``mask_boxes``,
     ``mask_logits`` (sum K_b, side, side) over each box grown by ``margin``, boxes in batch order, and
@@ -97,8 +104,11 @@ class YOLOXMasks(YOLOX):
         m = conf["mask"]
         if not 0.0 <= float(m["margin"]) <= 1.0:
             raise ConfigError(f"YOLOX mask head: margin must be in [0, 1], got {m['margin']}")
+        if not 0.0 < float(m["threshold"]) < 1.0:
+            raise ConfigError(f"YOLOX mask head: threshold must be in (0, 1), got {m['threshold']}")
         c3 = int(256 * float(conf["width"]))
-        self.mask_head = BoxMaskHead(c3, int(m["roi"]), int(m["side"]), int(m["channels"]), int(m["image_channels"]))
+        self.mask_head = BoxMaskHead(c3, int(m["roi"]), int(m["side"]), int(m["channels"]), int(m["image_channels"]),
+                                     int(m["refine_convs"]))
         self.head.register_forward_pre_hook(_keep_head_input)
 
     def _forward(self, data: Mapping[str, Any]) -> dict[str, torch.Tensor]:
