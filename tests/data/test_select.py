@@ -45,3 +45,37 @@ def test_subsequence_keeps_indices_and_the_whole_imu_stream():
         np.testing.assert_array_equal(f.imu.accel, want.accel)
     np.testing.assert_array_equal(frames[0].imu.t, seq.frame(0).imu.t)
     np.testing.assert_array_equal(frames[1].image, seq.frame(9).image)
+
+
+def test_jpeg_quality_recompresses_every_image_and_only_the_images():
+    """dataset.jpeg_quality: the colour (and right) images as a JPEG of that quality would give them back; depth
+    and ground truth untouched; a quality outside 1-100 is one line naming the field."""
+    import cv2
+
+    seq = SyntheticSequence(SyntheticConfig(n_frames=3, width=64, height=48, fx=52.5, fy=52.5, n_movers=0),
+                            sensor="stereo")
+    sub = select_frames(seq, jpeg_quality=40)
+    assert isinstance(sub, Subsequence) and len(sub) == 3
+    for raw, lossy in zip(seq, sub):
+        for a, b in ((raw.image, lossy.image), (raw.right, lossy.right)):
+            ok, buf = cv2.imencode(".jpg", a, [cv2.IMWRITE_JPEG_QUALITY, 40])
+            np.testing.assert_array_equal(b, cv2.imdecode(buf, cv2.IMREAD_UNCHANGED))
+            assert b.shape == a.shape and b.dtype == np.uint8 and not np.array_equal(a, b)
+        np.testing.assert_array_equal(raw.T_world_cam, lossy.T_world_cam)
+    assert PipelineConfig.load(None, {"dataset": {"jpeg_quality": 40}}).dataset.jpeg_quality == 40
+    with pytest.raises(ConfigError, match="dataset.jpeg_quality must be 0 .* or a JPEG quality 1-100, got 101"):
+        PipelineConfig.load(None, {"dataset": {"jpeg_quality": 101}})
+
+
+def test_second_room_keeps_the_route_and_the_shape_but_not_the_look():
+    """synthetic.second_room: from that frame on the same poses and depth (same box), other textures."""
+    cfg = dict(n_frames=4, width=64, height=48, fx=52.5, fy=52.5, n_movers=0)
+    one = SyntheticSequence(SyntheticConfig(**cfg))
+    two = SyntheticSequence(SyntheticConfig(second_room=2, **cfg))
+    for i in range(4):
+        a, b = one.frame(i), two.frame(i)
+        np.testing.assert_array_equal(a.T_world_cam, b.T_world_cam)
+        np.testing.assert_array_equal(a.depth, b.depth)
+        assert np.array_equal(a.image, b.image) == (i < 2)
+    with pytest.raises(ConfigError, match="synthetic.second_room is out of range: 4"):
+        SyntheticConfig(second_room=4, **cfg)

@@ -135,6 +135,26 @@ def test_no_candidate_in_an_unrelated_map(room_tracker):
     assert atlas.locate(kf.features, kf.ur, atlas.describe(kf.features)) is None
 
 
+def test_a_merge_needs_consecutive_keyframes_that_agree():
+    """``Atlas.vote``: the second keyframe in a row that finds the same map with a transform within 5 deg / 0.2 m
+    of the first's allows the merge; another map, a turned or (metric maps only) shifted transform, starts over."""
+    from vslam.tracking.atlas import AtlasConfig
+
+    atlas = Atlas(AtlasConfig(), None, None, None, None)
+    T = make_T(_rot_z(30.0), np.array([1.0, 2.0, 0.0]))
+    near = make_T(_rot_z(33.0), np.array([1.1, 2.0, 0.0]))
+    assert not atlas.vote(0, T, metric=True) and atlas.vote(0, near, metric=True)
+    atlas.votes = []
+    assert not atlas.vote(0, T, True) and not atlas.vote(1, T, True) and atlas.vote(1, near, True)  # other map
+    atlas.votes = []
+    assert not atlas.vote(0, T, True) and not atlas.vote(0, make_T(_rot_z(40.0), T[:3, 3]), True)  # turned 10 deg
+    atlas.votes = []
+    far = make_T(_rot_z(30.0), np.array([1.5, 2.0, 0.0]))
+    assert not atlas.vote(0, T, True) and not atlas.vote(0, far, True)  # 0.5 m apart
+    atlas.votes = []
+    assert not atlas.vote(0, T, False) and atlas.vote(0, far, False)  # monocular: units differ, rotation only
+
+
 def _check_multi_map_outputs(res, out) -> None:
     """A run that ends in several maps leads with the whole picture everywhere a reader looks: the printed summary
     (maps, posed of read frames, each map's ATE, then the largest map's number labelled as such), metrics.json

@@ -117,6 +117,8 @@ METRICS: dict[str, Metric] = {
     "tracked": Metric("frames tracked", "", "d"),
     "lost": Metric("frames lost", "", "d"),
     "new_maps": Metric("new maps", "", "d"),
+    "merges": Metric("maps merged", "", "d"),
+    "map_switches": Metric("archived maps taken up again", "", "d"),
     "fps": Metric("frames/s", "", ".1f"),
     "ms_per_frame": Metric("ms/frame", "", ".1f"),
     "rpe_t": Metric("RPE", "m", ".4f"),

@@ -7,7 +7,7 @@ from typing import Any, Literal
 
 from vslam.data.bag import BagTopics
 from vslam.data.live import LiveConfig
-from vslam.data.select import kept_indices
+from vslam.data.select import check_jpeg_quality, kept_indices
 
 
 @dataclass(frozen=True)
@@ -23,6 +23,7 @@ class DatasetConfig:
     # drops out: ``vslam.data.select``); max_frames counts the frames left
     stride: int = 1
     drop: tuple[tuple[int, int], ...] = ()
+    jpeg_quality: int = 0  # 1-100: every image JPEG-compressed at this quality before tracking (0: as read)
     synthetic: dict[str, Any] = field(default_factory=dict)  # SyntheticConfig fields when kind == synthetic
     # your own data (kinds images, video, bag; docs/inputs.md): camera file ("" = camera.yaml beside the data),
     # frame times from a times file or a rate (0 = from the file names / the container / the bag's stamps)
@@ -35,3 +36,4 @@ class DatasetConfig:
 
     def __post_init__(self) -> None:
         kept_indices(0, self.stride, self.drop)  # the same checks as when they are applied
+        check_jpeg_quality(self.jpeg_quality)

@@ -1,4 +1,5 @@
-"""Every N-th frame, or frame ranges cut out, of any sequence (``dataset.stride``, ``dataset.drop``).
+"""Every N-th frame, or frame ranges cut out, of any sequence (``dataset.stride``, ``dataset.drop``), and its
+images JPEG-compressed (``dataset.jpeg_quality``: a recording stored lossy, or streamed over a weak link).
 
 A low frame rate, a keyframe-only log or a dropped camera are one option away on every reader: the frames keep
 their original index (stats.csv rows point into the recording), and a frame after a gap carries every IMU
@@ -31,9 +32,10 @@ def kept_indices(n: int, stride: int = 1, drop: tuple[tuple[int, int], ...] = ()
 class Subsequence(Sequence):
     """The frames of ``base`` at ``indices`` (increasing), in order."""
 
-    def __init__(self, base: Sequence, indices: np.ndarray):
+    def __init__(self, base: Sequence, indices: np.ndarray, jpeg_quality: int = 0):
         self.base = base
         self.indices = np.asarray(indices, np.int64)
+        self.jpeg_quality = jpeg_quality  # 0: the images as read
         self.name = base.name
         self.sensor = base.sensor
         self.calibration = base.calibration
@@ -75,11 +77,32 @@ class Subsequence(Sequence):
             if imu is not None and t_prev is not None:
                 frame.imu = imu.between(t_prev, frame.timestamp)
             t_prev = frame.timestamp
+            if self.jpeg_quality:
+                frame.image = jpeg_roundtrip(frame.image, self.jpeg_quality)
+                if frame.right is not None:
+                    frame.right = jpeg_roundtrip(frame.right, self.jpeg_quality)
             yield frame
 
 
-def select_frames(seq: Sequence, stride: int = 1, drop: tuple[tuple[int, int], ...] = ()) -> Sequence:
-    """``seq`` itself when nothing is selected away, else its ``Subsequence``."""
-    if stride == 1 and not drop:
+def check_jpeg_quality(q: int) -> int:
+    if not (q == 0 or 1 <= q <= 100):
+        raise ConfigError(f"dataset.jpeg_quality must be 0 (images as read) or a JPEG quality 1-100, got {q}")
+    return q
+
+
+def jpeg_roundtrip(image: np.ndarray, quality: int) -> np.ndarray:
+    """``image`` (grey or BGR uint8) JPEG-encoded at ``quality`` and decoded again (OpenCV's libjpeg)."""
+    import cv2
+
+    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise ValueError("JPEG encoding failed")
+    return cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+
+
+def select_frames(seq: Sequence, stride: int = 1, drop: tuple[tuple[int, int], ...] = (),
+                  jpeg_quality: int = 0) -> Sequence:
+    """``seq`` itself when nothing is selected away or recompressed, else its ``Subsequence``."""
+    if stride == 1 and not drop and not check_jpeg_quality(jpeg_quality):
         return seq
-    return Subsequence(seq, kept_indices(len(seq), stride, drop))
+    return Subsequence(seq, kept_indices(len(seq), stride, drop), jpeg_quality)

@@ -137,7 +137,7 @@ class Pipeline:
         opened = open_dataset(cfg.dataset) if sequence is None else None
         try:
             seq = select_frames(opened if opened is not None else sequence,  # type: ignore[arg-type]
-                                cfg.dataset.stride, cfg.dataset.drop)
+                                cfg.dataset.stride, cfg.dataset.drop, cfg.dataset.jpeg_quality)
             out = Path(out_dir or cfg.output.dir)
             prepare_run_dir(out, keep=(cfg.slam.load_map,))
             try:

@@ -49,6 +49,11 @@ class AtlasConfig:
     merge_min_inliers: points the PnP + local-map round must keep for a merge: more than tracking's 20, since
         a wrong merge bends two maps together.
     merge_min_score: place-descriptor similarity floor of a candidate.
+    merge_consistency: new keyframes in a row that must each find the same archived map, with transforms
+        between the maps that agree (``merge_agree_deg`` / ``merge_agree_m``), before the maps merge: one
+        verified match can be a look-alike place (ORB-SLAM asks the same of loop candidates).
+    merge_agree_deg, merge_agree_m: how far two keyframes' map-to-map transforms may differ and still agree
+        (rotation; translation, not compared for monocular maps, whose unit is their own).
     min_lost_frames: frames not tracked in a row before a new map starts, besides ``new_map_after_s``: at a
         low frame rate (0.5-1 s between frames) one frame the tracker cannot measure is otherwise a new map,
         where the next frame would have been tracked in the old one again.
@@ -67,6 +72,9 @@ class AtlasConfig:
     merge_top_k: int = 5
     merge_min_inliers: int = 60
     merge_min_score: float = 0.05
+    merge_consistency: int = 2
+    merge_agree_deg: float = 5.0
+    merge_agree_m: float = 0.2
     min_lost_frames: int = 2
     relocalise: bool = True
     relocalise_min_inliers: int = 40
@@ -85,6 +93,8 @@ class Atlas:
         self.n_maps = 1  # ids handed out so far (map 0 is the first)
         self.merges: list[tuple[int, int, int, int]] = []  # (merged map, into map, query kf, candidate kf)
         self.switches = 0  # frames relocalised into an archived map, which then continued
+        # (archived map id, T_old_new) of the last keyframes that found it in a row (``merge_consistency``)
+        self.votes: list[tuple[int, np.ndarray]] = []
 
     def new_id(self) -> int:
         self.n_maps += 1
@@ -175,6 +185,19 @@ class Atlas:
         if int(good.sum()) < min_points:
             return None
         return float(np.median(zo[good] / zn[good]))
+
+    def vote(self, map_id: int, T_old_new: np.ndarray, metric: bool) -> bool:
+        """A new keyframe found archived map ``map_id`` with map-to-map transform ``T_old_new`` -> whether the
+        last ``merge_consistency`` keyframes (this one included) all found it, with agreeing transforms."""
+        if self.votes:
+            last_id, T_last = self.votes[-1]
+            dR = T_last[:3, :3].T @ T_old_new[:3, :3]
+            angle = np.degrees(np.arccos(np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0)))
+            far = metric and float(np.linalg.norm(T_last[:3, 3] - T_old_new[:3, 3])) > self.cfg.merge_agree_m
+            if last_id != map_id or angle > self.cfg.merge_agree_deg or far:
+                self.votes = []
+        self.votes.append((map_id, T_old_new))
+        return len(self.votes) >= self.cfg.merge_consistency
 
     def take(self, map_id: int) -> tuple[Map, KeyframeDatabase | None]:
         """Remove an archived map (it becomes the current one again, with the current map merged into it)."""

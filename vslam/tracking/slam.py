@@ -469,6 +469,7 @@ class SlamTracker:
             return False  # not enough depth for a map worth keeping (blur, a black frame): stay on the old one
         if self._pending is not None:
             self._flush_mapping()
+        atlas.votes = []
         if atlas.descriptor is None and (atlas.cfg.merge or atlas.cfg.relocalise):
             atlas.descriptor = self._place_descriptor()
         if self.map.keyframes:
@@ -537,6 +538,7 @@ class SlamTracker:
             self.mono_init = MonoInitializer(self.cam, self.cfg.init)
             self._pre_init = []
         atlas.switches += 1
+        atlas.votes = []
 
     def _place_descriptor(self):
         """The keyframes' place descriptor for merging: the loop closer's, else the bag of words over ORB
@@ -558,7 +560,10 @@ class SlamTracker:
         vec = (self.loop.db.vector(kf.id) if self.loop is not None and kf.id in self.loop.db
                else atlas.describe(kf.features, image))
         hit = atlas.locate(kf.features, kf.ur, vec) if atlas.cfg.merge else None
-        if hit is not None:
+        if hit is None:
+            atlas.votes = []  # the keyframes that found an archived map must follow one another
+        elif atlas.vote(hit[0], Atlas.old_from_new(kf.T_world_cam, hit[2].T_world_cam), self.sensor != "mono"):
+            atlas.votes = []
             self._merge(kf, *hit)
         return {"merge": (time.perf_counter() - t) * 1e3}
 

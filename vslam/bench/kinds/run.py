@@ -46,6 +46,8 @@ def run_pipeline(config: str | None, overrides: dict[str, Any], out_dir: str) ->
     status = [str(r.get("status", "")) for r in res.stats]
     row["lost"] = status.count("lost")
     row["new_maps"] = status.count("new_map")
+    row["merges"] = int(res.recovery.get("merges", 0))
+    row["map_switches"] = int(res.recovery.get("map_switches", 0))
     if res.eval is not None and 3 <= int(res.tracked.sum()) < len(res.trajectory) and not res.map_evals:
         # predicted frames carry no measurement: the same run scored on its measured frames alone, beside
         from vslam.eval import evaluate

@@ -79,6 +79,10 @@ class SyntheticConfig:
     speed: float | None = None
     # Black dots on white discs at known world points (``SyntheticSequence.landmarks``).
     markers: bool = True
+    # From this frame on (0: never) the camera goes on along its route in another room: the same box and route,
+    # other textures and movers (the scene of seed + 1). Places it passes again look alike in shape only: a
+    # sequence that must not be merged into one map (two data sets played one after the other).
+    second_room: int = 0
     # Time of frame 0, seconds. Large enough that nanosecond stamps (> 1e12) are
     # recognised as nanoseconds by readers that guess the unit.
     start_time: float = 10000.0
@@ -104,6 +108,7 @@ class SyntheticConfig:
             "corridor_end": self.corridor_end > 0,
             "exposure": 0 < self.exposure <= 4,
             "image_noise": 0 <= self.image_noise <= 64,
+            "second_room": 0 <= self.second_room < self.n_frames,
         }
         for name, ok in checks.items():
             if not ok:

@@ -97,6 +97,7 @@ class SyntheticSequence(Sequence):
         self._T_wc0 = self.motion.T_world_cam0(self._tau)
         self._scene: Scene | None = None  # built on first use (``scene``)
         self._renderer: Renderer | None = None
+        self._room2: tuple[Scene, Renderer] | None = None  # cfg.second_room's scene, built on first use
         imu_us = imu_grid_us(cfg, int(frame_us[-1]))
         self._imu_ns = start_ns + imu_us * 1000
         self._imu, self._imu_truth = synthesize_imu(cfg, self.motion, imu_us)
@@ -130,7 +131,7 @@ class SyntheticSequence(Sequence):
         """Pickled without the scene: it is a function of ``cfg`` (seeded), so the receiver builds the same bytes
         if it renders, and a sequence sent to a child process is a few MB instead of the atlas's hundreds."""
         state = self.__dict__.copy()
-        state["_scene"] = state["_renderer"] = None
+        state["_scene"] = state["_renderer"] = state["_room2"] = None
         return state
 
     # ------------------------------------------------------------------ Sequence interface
@@ -205,17 +206,29 @@ class SyntheticSequence(Sequence):
                 np.zeros((cfg.height, cfg.width), bool), np.zeros((0, 4)), np.zeros(0, np.int64), T,
             )
         tau = float(self._tau[i])
-        scene = self.scene
-        assert self._renderer is not None  # built with the scene
-        left = self._renderer.render(T, tau, movers)
+        scene, renderer = self._scene_at(i)
+        left = renderer.render(T, tau, movers)
         lut = self._lighting_lut(i)
         image = self._sensor(i, 0, self._faded(i, self._blurred(i, cv2.LUT(left.image, lut) if lut is not None else left.image)))
         right_img = None
         if right:
-            view = self._renderer.render(T @ self.T_cam0_cam1, tau, movers)
+            view = renderer.render(T @ self.T_cam0_cam1, tau, movers)
             right_img = self._sensor(i, 1, self._faded(i, self._blurred(i, cv2.LUT(view.image, lut) if lut is not None else view.image)))
         boxes, ids = boxes_from_ids(left.obj, len(scene.movers))
         return SyntheticRender(image, left.depth, right_img, left.obj > 0, boxes, ids, T)
+
+    def _scene_at(self, i: int) -> tuple[Scene, Renderer]:
+        """The scene frame ``i`` is rendered in, and its renderer: the second room from ``cfg.second_room`` on."""
+        scene = self.scene
+        assert self._renderer is not None  # built with the scene
+        if not self.cfg.second_room or i < self.cfg.second_room:
+            return scene, self._renderer
+        if self._room2 is None:
+            T = self._T_wc0
+            centres = np.stack([T[:, :3, 3], (T @ self.T_cam0_cam1)[:, :3, 3]], axis=1)
+            other = build_scene(dataclasses.replace(self.cfg, seed=self.cfg.seed + 1), centres, self._tau)
+            self._room2 = (other, Renderer(other, self.calibration.cam0))
+        return self._room2
 
     def _blurred(self, i: int, image: np.ndarray) -> np.ndarray:
         return cv2.GaussianBlur(image, (0, 0), self.cfg.blur_sigma) if self._blur[i] else image
