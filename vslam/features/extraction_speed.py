@@ -52,7 +52,7 @@ def layer_ms(model: torch.nn.Module, x: torch.Tensor) -> dict[str, float]:
     def lap(name: str) -> None:
         nonlocal t
         now = time.perf_counter()
-        out[name] = 1e3 * (now - t)
+        out[name] = out.get(name, 0.0) + 1e3 * (now - t)
         t = now
 
     from vslam.nn.keypoints.alike import PAD
