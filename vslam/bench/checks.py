@@ -119,6 +119,7 @@ METRICS: dict[str, Metric] = {
     "new_maps": Metric("new maps", "", "d"),
     "merges": Metric("maps merged", "", "d"),
     "map_switches": Metric("archived maps taken up again", "", "d"),
+    "merge_query_ms": Metric("merge query ms/keyframe", "", ".1f"),
     "fps": Metric("frames/s", "", ".1f"),
     "ms_per_frame": Metric("ms/frame", "", ".1f"),
     "rpe_t": Metric("RPE", "m", ".4f"),

@@ -53,7 +53,7 @@ log = logging.getLogger(__name__)
 STAT_COLUMNS = ("index", "timestamp", "dropped", "map_id", "final_map_id", "tracked", "status", "uncertain", "pose_std_m", "pose_std_deg", "n_features",
                 "n_matches", "n_inliers", "n_lines", "n_line_inliers", "imu", "ms_decode", "ms_features", "ms_detector",
                 "ms_dynamic", "ms_lines", "ms_depth", "ms_pose", "ms_mapping", "ms_map_create", "ms_map_fuse_cull",
-                "ms_map_ba", "ms_map_wait", "ms_map_loop", "ms_total")
+                "ms_map_ba", "ms_map_wait", "ms_map_loop", "ms_map_merge", "ms_total")
 
 
 def _write_final_maps(path: Path, stats: list[dict], odo: Odometry) -> None:

@@ -12,58 +12,32 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from vslam.backend.ba import BackendConfig, StereoCamera
+from vslam.backend.ba import StereoCamera
 from vslam.data.types import Calibration, Frame, SensorKind
-from vslam.dynamic import DynamicConfig
-from vslam.features import FeatureConfig, Features, make_extractor
+from vslam.features import Features, make_extractor
 from vslam.features.depth import stereo_ur
-from vslam.features.lines import LineConfig
 from vslam.features.stereo import is_rectified
 from vslam.geometry.se3 import inv_T
-from vslam.loop.config import LoopConfig
-from vslam.mapping.local_mapping import LocalMapper, MappingConfig
+from vslam.mapping.local_mapping import LocalMapper
 from vslam.mapping.map import Map
 from vslam.runtime import RuntimeConfig
-from vslam.tracking.atlas import Atlas, AtlasConfig
+from vslam.tracking.atlas import Atlas
 from vslam.tracking.baseline import FrameEstimate
-from vslam.tracking.dense import DenseConfig
+from vslam.tracking.config import SlamConfig
 from vslam.tracking.frame_log import FrameLog
 from vslam.tracking.frontend import FrameView, FrontEnd, FrontEndMaker
-from vslam.tracking.initializer import InitConfig
+from vslam.tracking.map_steps import MapSteps
 from vslam.tracking.mono_init import MonoInitializer
+from vslam.tracking.recovery import MapRecovery
 from vslam.tracking.stages import Stage, build_stages
-from vslam.tracking.tracker import Tracker, TrackingConfig, TrackResult, need_keyframe
-from vslam.tracking.vio import VioConfig
+from vslam.tracking.tracker import Tracker
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class SlamConfig:
-    features: FeatureConfig = field(default_factory=FeatureConfig)
-    tracking: TrackingConfig = field(default_factory=TrackingConfig)
-    mapping: MappingConfig = field(default_factory=MappingConfig)
-    backend: BackendConfig = field(default_factory=BackendConfig)
-    init: InitConfig = field(default_factory=InitConfig)
-    init_ba: bool = True  # monocular: BA of the two initial keyframes
-    # monocular: once the map exists, localise the frames seen before it against the initial map (PnP); the
-    # pipeline writes them into trajectory_final.tum.txt (trajectory.tum.txt keeps what was known per frame)
-    backfill: bool = True
-    loop: LoopConfig = field(default_factory=LoopConfig)  # loop closing + place relocalisation (vslam.loop)
-    load_map: str = ""  # start from a map saved by save_map (vslam.loop.mapio)
-    localize_only: bool = False  # with load_map: track against the saved map, never add keyframes
-    save_map: bool = False  # finish() also writes map.vslam.npz (keyframes, points, place descriptors)
-    inertial: VioConfig = field(default_factory=VioConfig)  # visual-inertial mode (vslam.tracking.vio), off by default
-    lines: LineConfig = field(default_factory=LineConfig)  # point + Plücker-line features, off by default
-    dynamic: DynamicConfig = field(default_factory=DynamicConfig)  # dynamic-object filtering, off by default
-    dense: DenseConfig = field(default_factory=DenseConfig)  # RGB-D: depth ICP where features fail (tracking.dense)
-    # tracking lost: a new map, and maps merged where they meet (``vslam.tracking.atlas``)
-    atlas: AtlasConfig = field(default_factory=AtlasConfig)
 
 
 # FrameView and FrontEnd live in vslam.tracking.frontend; named here too because viewers and the front-end
@@ -71,7 +45,7 @@ class SlamConfig:
 __all__ = ["FrameView", "FrontEnd", "SlamConfig", "SlamTracker", "write_map_ply"]
 
 
-class SlamTracker:
+class SlamTracker(MapRecovery, MapSteps):
     """Feed frames in order with ``track(frame)``; ``finish(out_dir)`` writes the keyframes and the map."""
 
     def __init__(self, calibration: Calibration, sensor: SensorKind, cfg: SlamConfig = SlamConfig(),
@@ -310,337 +284,6 @@ class SlamTracker:
             s.report(est, front)
         return est
 
-    def _loop_step(self, kf, image: np.ndarray) -> dict[str, float]:
-        """Place recognition (and a loop correction) for a mapped keyframe."""
-        t = time.perf_counter()
-        self.loop.add_keyframe(kf, image)  # type: ignore[union-attr]
-        if self.loop.last_scale != 1.0:  # type: ignore[union-attr]  # a monocular loop rescaled this part of the map
-            self.velocity = self.velocity.copy()
-            self.velocity[:3, 3] *= self.loop.last_scale  # type: ignore[union-attr]
-            self._rel_scale = self.loop.last_scale  # type: ignore[union-attr]
-            self.loop.last_scale = 1.0  # type: ignore[union-attr]
-        return {"loop": (time.perf_counter() - t) * 1e3}
-
-    def _flush_mapping(self) -> dict[str, float]:
-        """Write back the worker's local BA, then run the loop step that waited for it; the current pose follows
-        the keyframe (as the keyframe's own pose does when BA runs at once). -> ms per step, "flush" the total."""
-        t = time.perf_counter()
-        kf, image, _ = self._pending  # type: ignore[misc]
-        self._pending = None
-        T_before = kf.T_world_cam.copy()
-        ms = {"wait": self.mapper.flush()}
-        self._rel_scale = 1.0
-        if self.loop is not None:
-            ms.update(self._loop_step(kf, image))
-        rel = inv_T(T_before) @ self.T_world_cam
-        rel[:3, 3] *= self._rel_scale
-        self.T_world_cam = kf.T_world_cam @ rel
-        ms["flush"] = (time.perf_counter() - t) * 1e3
-        return ms
-
-    def _backfill(self) -> dict[int, np.ndarray]:
-        """Monocular, right after the two-view initialisation: poses of the frames seen before it, by descriptor
-        matching + PnP + pose-only refinement against the initial map (``Tracker.track_keyframe`` on the first
-        keyframe; frames between the two views see its points). -> {frame index: T_world_cam}; frames that do
-        not localise are left out."""
-        from scipy.spatial import cKDTree
-
-        kf0 = self.map.keyframes[min(self.map.keyframes)]  # the reference view defines the world
-        out = {kf0.frame_index: kf0.T_world_cam.copy()}
-        for idx, feats in self._pre_init:
-            if idx in out or len(feats) < self.cfg.tracking.min_inliers:
-                continue
-            res = self.tracker.track_keyframe(feats, np.full(len(feats), np.nan), kf0.id, cKDTree(feats.uv), "backfill")
-            if res is not None and res.ok:
-                out[idx] = res.T_world_cam
-        self._pre_init = []
-        for idx, T in out.items():  # they follow kf0 when the map moves later (loop, mono-inertial scale)
-            self.frames.record(idx, kf0.id, T)
-        return out
-
-    def _initialize(self, frame: Frame, feats: Features, depth: np.ndarray, ur: np.ndarray,
-                    T0: np.ndarray | None = None) -> bool:
-        """Start the map (RGB-D / stereo: this frame's depth, its keyframe at ``T0``, the identity for the first
-        map; monocular: the two-view initialiser)."""
-        if self.cfg.load_map:  # a saved map: the first frame is placed in it by place recognition
-            res = self.loop.relocalise(self.tracker, feats, ur, frame.image)  # type: ignore[union-attr]
-            if res is None:
-                return False
-            self.T_world_cam, self.ref_kf = res.T_world_cam, self.tracker.best_reference(res.point_ids, -1)
-            return self.ref_kf >= 0
-        if self.mono_init is not None:
-            kfs = self.mono_init.try_initialize(self.map, frame.index, frame.timestamp, feats, self.stereo_cam,
-                                                self.cfg.backend, self.cfg.init_ba)
-            if kfs is None:
-                return False
-            self.ref_kf, self.last_kf_frame = kfs[1].id, self.n_frames
-            self.T_world_cam = kfs[1].T_world_cam.copy()
-            for s in self.stages:
-                s.on_two_view_map(self, kfs, frame)
-            if self.loop is not None:  # the reference view's image is gone: an image descriptor sees only the second
-                for k in kfs:
-                    self.loop.add_keyframe(k, frame.image if k is kfs[1] else None)
-            return True
-        if int(np.isfinite(depth).sum()) < self.cfg.tracking.min_depth_points:
-            return False
-        T0 = np.eye(4) if T0 is None else T0
-        kf = self.map.add_keyframe(frame.index, frame.timestamp, T0, feats, depth, ur)
-        for s in self.stages:
-            s.on_keyframe(self, kf, frame, None)
-        self.mapper.process(kf, np.full(len(feats), -1, np.int64))
-        if self.loop is not None:
-            self.loop.add_keyframe(kf, frame.image)
-        self.ref_kf, self.last_kf_frame = kf.id, self.n_frames
-        self.T_world_cam = T0.copy()
-        return True
-
-    # -- the tracking states -------------------------------------------------------
-    @property
-    def state(self) -> str:
-        """Where tracking stands after the last frame: "initialising" (no map yet), "tracking" (the frame was
-        measured), "lost" (not measured: predicted while every recovery step is tried on the next frames),
-        "relocalising" (lost for ``atlas.new_map_after_s``: a new map starts at the first frame that can make
-        one, the old map is still tried until then), "new_map" (a monocular map was given up; the next two-view
-        initialisation starts the new one)."""
-        if self._restart is not None:
-            return "new_map"
-        if self.ref_kf is None:
-            return "initialising"
-        if self._prev_tracked:
-            return "tracking"
-        return "relocalising" if self._lost_for_now >= self.cfg.atlas.new_map_after_s else "lost"
-
-    def _measure(self, frame: Frame, feats: Features, ur: np.ndarray, T_pred: np.ndarray) -> TrackResult:
-        """The recovery ladder, each step only when the ones before failed: the motion model's projection search,
-        the reference keyframe by descriptor, after a loss the newest keyframes (``Tracker.track``); place
-        relocalisation over the whole map (``slam.loop``); the dense depth step (RGB-D, ``slam.dense``)."""
-        wide = self._t_tracked is not None and frame.timestamp - self._t_tracked >= self.cfg.tracking.wide_gap_s
-        res = self.tracker.track(feats, ur, T_pred, self.ref_kf, after_loss=not self._prev_tracked,  # type: ignore[arg-type]
-                                 last_ids=self._last_ids, wide=wide)
-        if not res.ok and self.loop is not None and self.cfg.loop.relocalise:  # place recognition over all keyframes
-            res = self.loop.relocalise(self.tracker, feats, ur, frame.image) or res
-        for s in self.stages:  # lines refine a tracked pose; dense depth tracking tries a lost one
-            res = s.measure(self, frame, feats, ur, T_pred, res)
-        if not res.ok:  # the camera may be back in a map it left: that map continues
-            res = self._relocalise_archived(frame, feats, ur) or res
-        return res
-
-    def _lost(self, frame: Frame, feats: Features, depth: np.ndarray, ur: np.ndarray, T_pred: np.ndarray,
-              est: FrameEstimate) -> None:
-        """A frame no recovery step measured: predicted (motion model) at first; once lost for
-        ``atlas.new_map_after_s`` a new map from this frame if it can make one; past ``atlas.bridge_s`` no pose."""
-        T_last = self.T_world_cam
-        self.T_world_cam = T_pred
-        log.debug("frame %d not tracked; pose predicted", frame.index)
-        lost_s = self._lost_for_now = self._lost_for(frame.timestamp)
-        # after a gap in the images (3 frame intervals or more) nothing is gained by waiting for another frame
-        gap = self._dt_last > 0 and frame.timestamp - self._t_last > 3 * self._dt_last  # type: ignore[operator]
-        if lost_s >= self.cfg.atlas.new_map_after_s and (self._n_lost + 1 >= self.cfg.atlas.min_lost_frames or gap):
-            # the new map's frame continues the old one's: from where the IMU puts the camera, else where it was
-            # last seen
-            T0 = T_pred if self.vio is not None and self.vio.predicting else T_last
-            if self._new_map(frame, feats, depth, ur, T0):
-                est.tracked, est.status, est.pose_cov = True, "new_map", np.zeros((6, 6))
-            elif lost_s > self.cfg.atlas.bridge_s:
-                est.status = "lost"  # predicted no longer: no pose
-                self.T_world_cam = T_last
-
-    # -- several maps (``vslam.tracking.atlas``) -----------------------------------
-    def _lost_for(self, t: float) -> float:
-        """Seconds since the last tracked frame; 0 while a new map cannot be made (no Atlas)."""
-        return 0.0 if self.atlas is None or self._t_tracked is None else t - self._t_tracked
-
-    def _use_map(self, m: Map) -> None:
-        """Make ``m`` the map every stage works on."""
-        self.map = self.tracker.map = self.mapper.map = self.frames.map = m
-        self.mapper.recent = [p for p in self.mapper.recent if p in m.points]
-        self._last_ids = None
-        if self.loop is not None:
-            self.loop.map = m
-        for s in self.stages:
-            s.on_map(self, m)
-
-    def _new_map(self, frame: Frame, feats: Features, depth: np.ndarray, ur: np.ndarray, T0: np.ndarray) -> bool:
-        """Archive the current map and start a new one: at once from this frame's depth (RGB-D / stereo; -> True
-        when it did), at the next two-view initialisation (monocular)."""
-        atlas = self.atlas
-        assert atlas is not None
-        if self.mono_init is None and int(np.isfinite(depth).sum()) < atlas.cfg.min_points:
-            return False  # not enough depth for a map worth keeping (blur, a black frame): stay on the old one
-        if self._pending is not None:
-            self._flush_mapping()
-        atlas.votes = []
-        if atlas.descriptor is None and (atlas.cfg.merge or atlas.cfg.relocalise):
-            atlas.descriptor = self._place_descriptor()
-        if self.map.keyframes:
-            old_db = self.loop.db if self.loop is not None else None
-            atlas.archive(self.map_id, self.map, old_db)
-            self.map_id = atlas.new_id()
-        if self.loop is not None:
-            from vslam.loop.database import KeyframeDatabase
-
-            self.loop.db = KeyframeDatabase(self.loop.descriptor.dim)
-            self.loop._groups = []
-        self._use_map(self.map.successor())
-        for s in self.stages:
-            s.on_new_map()
-        self.ref_kf, self.velocity, self._t_tracked = None, np.eye(4), None
-        log.info("frame %d: tracking lost; map %d started", frame.index, self.map_id)
-        if self.mono_init is None:
-            return self._initialize(frame, feats, depth, ur, T0)
-        self.mono_init = MonoInitializer(self.cam, self.cfg.init)
-        self._pre_init = []
-        self._restart = T0  # monocular: the next two-view initialisation starts the map (``track``)
-        return False
-
-    def _relocalise_archived(self, frame: Frame, feats: Features, ur: np.ndarray) -> TrackResult | None:
-        """A frame the current map did not measure, looked for in the archived maps (``atlas.relocalise``); found,
-        that map becomes the current one again (``_switch_map``) -> the frame's result there, method
-        "relocalised". Not with an IMU: each map's inertial state is not kept when it is archived."""
-        atlas = self.atlas
-        if atlas is None or not atlas.maps or not atlas.cfg.relocalise or self.vio is not None:
-            return None
-        if atlas.descriptor is None:
-            return None  # no place descriptor (learned keypoints without the loop closer)
-        vec = atlas.describe(feats, frame.image)
-        hit = atlas.locate(feats, ur, vec, atlas.cfg.relocalise_min_inliers, "relocalised",
-                           self.cfg.tracking.ratio_wide)
-        if hit is None:
-            return None
-        map_id, cand, res = hit
-        self._switch_map(map_id)
-        self.T_world_cam, self.velocity = res.T_world_cam, np.eye(4)  # the motion since the loss is unknown
-        self.ref_kf = self.tracker.best_reference(res.point_ids, cand)
-        self._last_ids = res.point_ids[res.point_ids >= 0]
-        log.info("frame %d relocalised in map %d (keyframe %d, %d inliers)", frame.index, map_id, cand, res.n_inliers)
-        return res
-
-    def _switch_map(self, map_id: int) -> None:
-        """Archived map ``map_id`` becomes the current one; the current map is archived (dropped when it has no
-        keyframe yet) and any pending monocular re-initialisation is given up."""
-        atlas = self.atlas
-        assert atlas is not None
-        if self._pending is not None:
-            self._flush_mapping()
-        m, db = atlas.take(map_id)
-        m.continue_ids(self.map)  # ids stay unique across the run's maps
-        if self.map.keyframes:
-            atlas.archive(self.map_id, self.map, self.loop.db if self.loop is not None else None)
-        if self.loop is not None:
-            from vslam.loop.database import KeyframeDatabase
-
-            self.loop.db = db if db is not None else KeyframeDatabase(self.loop.descriptor.dim)
-            self.loop._groups = []
-        self._use_map(m)
-        self.map_id = map_id
-        self._restart = None
-        if self.mono_init is not None:
-            self.mono_init = MonoInitializer(self.cam, self.cfg.init)
-            self._pre_init = []
-        atlas.switches += 1
-        atlas.votes = []
-
-    def _place_descriptor(self):
-        """The keyframes' place descriptor for merging: the loop closer's, else the bag of words over ORB
-        descriptors (None for learned float descriptors without the loop closer: maps are then never merged)."""
-        if self.loop is not None:
-            return self.loop.descriptor
-        if self.extractor.descriptor_kind != "binary":
-            log.warning("slam.atlas.merge needs slam.loop.enabled with learned keypoints; maps will not be merged")
-            return None
-        from vslam.loop.descriptor import make_place_descriptor
-
-        return make_place_descriptor("bow", self.cfg.loop.vocabulary)
-
-    def _try_merge(self, kf, image: np.ndarray) -> dict[str, float]:
-        """Look for the new keyframe in the archived maps; on a confirmed match move this map into that one."""
-        t = time.perf_counter()
-        atlas = self.atlas
-        assert atlas is not None
-        vec = (self.loop.db.vector(kf.id) if self.loop is not None and kf.id in self.loop.db
-               else atlas.describe(kf.features, image))
-        hit = atlas.locate(kf.features, kf.ur, vec) if atlas.cfg.merge else None
-        if hit is None:
-            atlas.votes = []  # the keyframes that found an archived map must follow one another
-        elif atlas.vote(hit[0], Atlas.old_from_new(kf.T_world_cam, hit[2].T_world_cam), self.sensor != "mono"):
-            atlas.votes = []
-            self._merge(kf, *hit)
-        return {"merge": (time.perf_counter() - t) * 1e3}
-
-    def _merge(self, kf, old_id: int, cand: int, res: TrackResult) -> None:
-        """The current map joins archived map ``old_id``: moved by the transform the keyframe's two poses give
-        (monocular: a similarity, ``Atlas.scale``), the seam's duplicate points fused into the keyframe and its
-        neighbours, then a global BA."""
-        atlas = self.atlas
-        assert atlas is not None
-        scale = 1.0
-        if self.sensor == "mono":
-            s = atlas.scale(atlas.maps[old_id], self.map, kf, res)
-            if s is None:
-                log.info("keyframe %d seen in map %d, too few points on both sides for the scale: not merged", kf.id, old_id)
-                return
-            scale = s
-        T_old_new = atlas.old_from_new(kf.T_world_cam, res.T_world_cam, scale)
-        if self.vio is not None and self.vio.ready:  # both maps in the IMU's gravity-aligned frame
-            T_old_new = atlas.yaw_only(T_old_new, kf.T_world_cam)
-        old, old_db = atlas.take(old_id)
-        new, new_id = self.map, self.map_id
-        if scale != 1.0:  # the frames' poses relative to their keyframes, and the motion model, take the old unit
-            self.frames.scale_refs({k: scale for k in new.keyframes})
-            self.velocity = self.velocity.copy()
-            self.velocity[:3, 3] *= scale
-        old.absorb(new, T_old_new, scale)
-        if self.loop is not None and old_db is not None:  # one database for the merged map
-            for k in old_db.ids().tolist():
-                self.loop.db.add(k, old_db.vector(k))
-        self._use_map(old)
-        self.frames.moved = True  # the frames of the merged map are re-expressed in the old map's frame
-        atlas.parent[new_id] = old_id
-        atlas.merges.append((new_id, old_id, kf.id, cand))
-        self.map_id = old_id
-        old.fuse_matches(kf.id, res.point_ids)  # the keyframe's keypoints that matched the old map's points
-        _, seam = old.local_map(cand, self.cfg.tracking.local_keyframes)
-        for k in [kf.id, *old.covisible_keyframes(kf.id, 1, self.cfg.mapping.fuse_neighbors)]:
-            self.mapper._fuse_into(old.keyframes[k], seam)
-        old.update_descriptors(np.unique(kf.point_ids[kf.point_ids >= 0]))
-        # as after a loop: every keyframe and point re-fitted across the seam, whose fused points now tie the maps
-        from vslam.loop.closing import global_bundle_adjust
-
-        lc = self.cfg.loop
-        global_bundle_adjust(old, self.stereo_cam, self.cfg.backend, lc.global_ba_iterations, lc.global_ba_min_obs)
-        self.T_world_cam = kf.T_world_cam.copy()
-        log.info("map %d merged into map %d (keyframe %d seen in keyframe %d, %d inliers, scale %.3f)", new_id,
-                 old_id, kf.id, cand, res.n_inliers, scale)
-
-    def _status(self, ok: bool, method: str, depth: np.ndarray) -> str:
-        """FrameEstimate.status of a frame after initialisation (see there)."""
-        if not ok:
-            return "predicted"
-        if method in ("relocalised", "dense"):  # dense: the depth ICP of vslam.tracking.dense
-            return method
-        if self.sensor != "mono" and int(np.isfinite(depth).sum()) < self.cfg.tracking.min_depth_points:
-            return "no_depth"  # measured from 2-D matches only: weaker, and the frame cannot become a keyframe
-        return "tracked"
-
-    def _want_keyframe(self, frame: Frame, n_inliers: int, point_ids: np.ndarray, depth: np.ndarray, method: str = "") -> bool:
-        tc = self.cfg.tracking
-        if self.sensor != "mono" and int(np.isfinite(depth).sum()) < tc.min_depth_points:
-            return False  # a keyframe without depth would add no points
-        for s in self.stages:  # a stage that measured the frame (depth ICP) has its own rule
-            d = s.decides_keyframe(method, depth, tc.kf_min_inliers)
-            if d is not None:
-                return d
-        ref = self.map.keyframes[self.ref_kf]  # type: ignore[index]
-        min_obs = min(3, len(self.map.keyframes))  # ORB-SLAM: 2 while the map has <= 2 keyframes; 1 for the first
-        ref_ids = ref.point_ids[ref.point_ids >= 0]
-        points = self.map.points
-        ref_tracked = sum(1 for p in ref_ids.tolist() if len(points[p].observations) >= min_obs)
-        close = np.isfinite(depth) & (depth < tc.close_baselines * self.baseline)
-        n_close_tracked = int(np.sum(close & (point_ids >= 0)))
-        n_close_untracked = int(np.sum(close & (point_ids < 0)))
-        return need_keyframe(n_inliers, ref_tracked, self.n_frames - self.last_kf_frame, n_close_tracked,
-                             n_close_untracked, self.sensor, tc)
-
     # -- outputs ------------------------------------------------------------------
     def map_stats(self) -> dict[str, int]:
         stats = self.map.stats()
@@ -659,20 +302,6 @@ class SlamTracker:
         inertial rescale moved the map after they were written (``FrameLog``), else None (the online poses stand)."""
         moved = self.frames.moved or (self.loop is not None and self.loop.stats.corrected > 0)
         return self.frames.poses(frame_indices) if moved else None
-
-    def final_map_ids(self, map_ids: list[int]) -> list[int]:
-        """The map each of ``map_ids`` (the frames' maps when tracked) ended in after the merges."""
-        if self.atlas is None:
-            return list(map_ids)
-        return [self.atlas.final_id(m) for m in map_ids]
-
-    def recovery_stats(self) -> dict[str, int]:
-        """new_maps (started after a loss), merges (maps joined into an older one), map_switches (frames
-        relocalised into an archived map, which then continued)."""
-        a = self.atlas
-        if a is None:
-            return {}
-        return {"new_maps": a.n_maps - 1, "merges": len(a.merges), "map_switches": a.switches}
 
     def finish(self, out_dir: str | Path) -> dict[str, Path]:
         """Write ``keyframes.tum.txt`` (optimised keyframe poses) and ``map.ply`` (map points, world frame);

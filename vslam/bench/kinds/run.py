@@ -48,6 +48,9 @@ def run_pipeline(config: str | None, overrides: dict[str, Any], out_dir: str) ->
     row["new_maps"] = status.count("new_map")
     row["merges"] = int(res.recovery.get("merges", 0))
     row["map_switches"] = int(res.recovery.get("map_switches", 0))
+    merge_ms = [float(r["ms_map_merge"]) for r in res.stats if r.get("ms_map_merge") not in (None, "")]
+    if merge_ms:  # keyframes looked for in the archived maps
+        row["merge_query_ms"] = float(np.median(merge_ms))
     if res.eval is not None and 3 <= int(res.tracked.sum()) < len(res.trajectory) and not res.map_evals:
         # predicted frames carry no measurement: the same run scored on its measured frames alone, beside
         from vslam.eval import evaluate
