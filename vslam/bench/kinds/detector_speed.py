@@ -1,6 +1,7 @@
 """Kind ``detector_speed``: detectors side by side, ms per frame of ``detect()`` (letterbox, network, NMS and,
 where the checkpoint has a mask head, its masks in the image's pixels) on TUM teddy frames with composited walkers
-(validation walker seed by default), as SLAM runs them (its score threshold, torch on the CPU).
+(validation walker seed by default) or on labelled photos resized to 640x480, as SLAM runs them (its score
+threshold, torch on the CPU).
 
 The models run in turn on each frame, so a load that comes and goes on a shared machine reaches them alike; read
 the ratio between them beside the absolute times."""
@@ -20,7 +21,8 @@ from vslam.errors import ConfigError
 
 def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
     """``set``: models=[checkpoint, ...] (paths from the repository root), frames (30), threads (2), seed (walker
-    seed of the composite, 1), start (first frame, 100) -> {"models": {path: {"ms_median", "ms_min",
+    seed of the composite, 1), start (first frame, 10), or photos (folder:split of labelled photos instead, resized
+    to 640x480) -> {"models": {path: {"ms_median", "ms_min",
     "detections", "masks"}} keyed by the file's stem, "frames", "threads"}."""
     import torch
 
@@ -34,9 +36,19 @@ def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str
         raise ConfigError("bench kind detector_speed needs set: models=[file, ...] (files of distinct names)")
     n, threads = int(overrides.get("frames", 30)), int(overrides.get("threads", 2))
     torch.set_num_threads(threads)
-    cfg = MakeDynamicConfig(n_people=3, seed=int(overrides.get("seed", 1)), max_frames=int(overrides.get("start", 100)) + n)
-    frames = [img for _, img, _, _, _ in composited_frames(data_root() / "tum" / "rgbd_dataset_freiburg3_teddy",
-                                                           data_root() / "coco128", cfg, start=int(overrides.get("start", 100)))]
+    if overrides.get("photos"):  # labelled photos (folder:split under $VSLAM_DATA), each resized to 640x480
+        import cv2
+
+        from vslam.dynamic.datasets import load_records
+
+        folder, _, split = str(overrides["photos"]).partition(":")
+        _, records = load_records(data_root() / folder, split or "val")  # type: ignore[arg-type]
+        frames = [cv2.resize(r.image(), (640, 480), interpolation=cv2.INTER_AREA) for r in records[:n]]
+    else:
+        start = int(overrides.get("start", 10))
+        cfg = MakeDynamicConfig(n_people=3, seed=int(overrides.get("seed", 1)), max_frames=start + n)
+        frames = [img for _, img, _, _, _ in composited_frames(data_root() / "tum" / "rgbd_dataset_freiburg3_teddy",
+                                                               data_root() / "coco128", cfg, start=start)]
     dets = [load_detector(m, conf=DynamicConfig().score_threshold, field="models") for m in models]
     for d in dets:  # warm-up: first-call allocations and kernel choices
         for img in frames[:3]:
