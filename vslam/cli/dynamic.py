@@ -15,6 +15,25 @@ def add_cli(sub: argparse._SubParsersAction) -> None:
     _add_detect(sub)
 
 
+def add_detector_args(p: argparse.ArgumentParser, model_help: str, threshold_help: str) -> None:
+    """The options every command that runs a detector shares: --model, --threshold, --img-size, --wide, --threads."""
+    p.add_argument("--model", default="", help=model_help)
+    p.add_argument("--threshold", type=float, help=threshold_help)
+    p.add_argument("--img-size", type=int, default=0, help="network input size, the longer side, a multiple of 32 "
+                                                             "(0 = the size the model was made for, as slam.dynamic.img_size)")
+    p.add_argument("--wide", action="store_true", help="YOLOX-style detectors: keep the image's aspect (--img-size "
+                                                      "its longer side) instead of a square input")
+    p.add_argument("--threads", type=int, default=2, help="CPU threads of the network")
+
+
+def checked_threshold(value: float | None, default: float) -> float:
+    """--threshold, or ``default`` when not given; one line when it is not a score."""
+    threshold = default if value is None else value
+    if not 0 <= threshold <= 1:
+        raise ConfigError(f"--threshold is a score in [0, 1], got {threshold}")
+    return threshold
+
+
 def _add_make_dynamic(sub: argparse._SubParsersAction) -> None:
     m = sub.add_parser("make-dynamic", help="composite walking COCO people into a TUM RGB-D or KITTI sequence (+ masks)")
     m.add_argument("data", help="TUM RGB-D sequence folder (undistorted camera, e.g. freiburg3) or KITTI sequence "
@@ -48,15 +67,10 @@ def _add_eval_detector(sub: argparse._SubParsersAction) -> None:
     e.add_argument("data", help="folder in YOLO (COCO128), PASCAL (Penn-Fudan) or KITTI-object layout (auto-detected); "
                                 "relative paths also tried under $VSLAM_DATA")
     e.add_argument("--split", default="val", choices=["val", "train", "all"], help="the fixed split (docs/detector-data.md)")
-    e.add_argument("--model", default="", help="detector checkpoint (default the shipped one); with --teacher an ONNX file")
+    add_detector_args(e, "detector checkpoint (default the shipped one); with --teacher an ONNX file",
+                      "score threshold of recall / precision / mask IoU (default: SLAM's "
+                      "slam.dynamic.score_threshold; 0.5 for --teacher)")
     e.add_argument("--teacher", action="store_true", help="evaluate FastestDet through onnxruntime (extra vslam[teacher])")
-    e.add_argument("--threshold", type=float, help="score threshold of recall / precision / mask IoU "
-                                                   "(default: SLAM's slam.dynamic.score_threshold; 0.5 for --teacher)")
-    e.add_argument("--img-size", type=int, default=0, help="our detector's input size (longer side; 0 = the size "
-                                                             "it was trained at, as slam.dynamic.img_size)")
-    e.add_argument("--wide", action="store_true", help="YOLOX-style detectors: keep the image's aspect (--img-size "
-                                                      "its longer side) instead of a square input")
-    e.add_argument("--threads", type=int, default=2, help="CPU threads of the network")
     e.add_argument("--json", help="also write the report as JSON here")
     e.set_defaults(fn=cmd_eval_detector)
 
@@ -75,9 +89,7 @@ def cmd_eval_detector(args: argparse.Namespace) -> int:
     split: Split = args.split
     layout, records = load_records(data, split)
     det, slam_threshold, name = build_detector(args.model, args.teacher, args.threads, args.img_size, args.wide)
-    threshold = slam_threshold if args.threshold is None else args.threshold
-    if not 0 <= threshold <= 1:
-        raise ConfigError(f"--threshold is a score in [0, 1], got {threshold}")
+    threshold = checked_threshold(args.threshold, slam_threshold)
     with progress_bar("detecting", len(records), unit="image", quiet=args.quiet) as bar:
         preds = predict(det, records, bar)
     rep = evaluate(records, preds, threshold)
@@ -93,15 +105,9 @@ def _add_detect(sub: argparse._SubParsersAction) -> None:
     d = sub.add_parser("detect", help="detect people and vehicles on images; write COCO-format results (JSON)")
     d.add_argument("images", nargs="+", help="image files or folders of images")
     d.add_argument("--out", "-o", required=True, help="JSON file to write (a list of COCO result entries)")
-    d.add_argument("--model", default="", help="detector checkpoint, either format (default: the shipped YOLOX-nano, "
-                                               "the most accurate on photos; SLAM's default is slam.dynamic.weights)")
-    d.add_argument("--threshold", type=float, help="keep detections scoring at least this (default: SLAM's "
-                                                   "slam.dynamic.score_threshold)")
-    d.add_argument("--img-size", type=int, default=0, help="network input size, a multiple of 32 (0 = the size "
-                                                             "the model was made for)")
-    d.add_argument("--wide", action="store_true", help="YOLOX-style detectors: keep the image's aspect (--img-size "
-                                                      "its longer side) instead of a square input")
-    d.add_argument("--threads", type=int, default=2, help="CPU threads of the network")
+    add_detector_args(d, "detector checkpoint, either format (default: the shipped YOLOX-nano, the most accurate "
+                         "on photos; SLAM's default is slam.dynamic.weights)",
+                      "keep detections scoring at least this (default: SLAM's slam.dynamic.score_threshold)")
     d.set_defaults(fn=cmd_detect)
 
 
@@ -113,9 +119,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     from vslam.dynamic.eval_detector import build_detector
     from vslam.progress import progress_bar
 
-    threshold = DynamicConfig().score_threshold if args.threshold is None else args.threshold
-    if not 0 <= threshold <= 1:
-        raise ConfigError(f"--threshold is a score in [0, 1], got {threshold}")
+    threshold = checked_threshold(args.threshold, DynamicConfig().score_threshold)
     files = image_files(args.images)
     from vslam.dynamic.detector import photo_weights
 
