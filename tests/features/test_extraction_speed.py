@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -40,6 +41,21 @@ def test_times_every_method_and_step():
     assert r["size"] == "320x240" and res["threads"] == 1
     table = format_table(res)
     assert "| toy | 320x240 @ 0.5 | 300 |" in table[2]
+
+
+def test_extra_stages_and_front_end():
+    """A further stage is timed per frame with the frame's ALIKE keypoints; front_end = ALIKE + the stages."""
+    cam = PinholeCamera(fx=300.0, fy=300.0, cx=160, cy=120, width=320, height=240)
+    cfg = FeatureConfig(extractor="alike-t", n_features=200, input_scale=0.5, min_score=0.0)
+    seen = []
+    stage = ("masks", lambda im, xy: (seen.append(len(xy)), time.sleep(0.002)))
+    r = extraction_speed([SpeedSet("toy", _frames(2), cam, cfg, (stage,))], repeats=1, threads=1,
+                         runtimes=("torch",))["toy"]
+    assert len(seen) == 2 + 2 and all(0 < n <= 200 for n in seen)  # warm-up frames, then the timed ones
+    assert r["ms"]["masks"] >= 2.0 and r["ms"]["front_end"] >= r["ms"]["masks"] + 0.5 * r["ms"]["alike-t torch"]
+    other = {**r, "ms": {k: v for k, v in r["ms"].items() if k not in ("masks", "front_end")}}
+    table = format_table({"a": r, "b": other})  # a stage only one set times: a dash in the other's row
+    assert "masks ms" in table[0] and table[3].count("–") == 2
 
 
 def test_openmp_waits_passively():

@@ -40,6 +40,9 @@ class SpeedSet:
     images: list[np.ndarray]
     camera: PinholeCamera
     alike: FeatureConfig
+    # further per-frame stages timed in the same loop, (name, fn(image, alike keypoints (N,2) pixels)); with any,
+    # "front_end" is the first ALIKE runtime plus all of them, frame by frame (the learned front end's floor)
+    extra: tuple[tuple[str, Callable[[np.ndarray, np.ndarray], Any]], ...] = ()
 
 
 def layer_ms(model: torch.nn.Module, x: torch.Tensor) -> dict[str, float]:
@@ -102,7 +105,9 @@ def time_set(s: SpeedSet, repeats: int = 3, runtimes: tuple[str, ...] = ("torch"
     for im in s.images[:2]:  # warm-up: allocations, onnxruntime's session, first-call paths
         orb.detect(im, s.camera)
         for ext in alikes.values():
-            ext.detect(im, s.camera)
+            f = ext.detect(im, s.camera)
+        for _, fn in s.extra:
+            fn(im, f.raw)
     for rep in range(repeats):
         for im in s.images:
             t0 = time.perf_counter()
@@ -125,8 +130,16 @@ def time_set(s: SpeedSet, repeats: int = 3, runtimes: tuple[str, ...] = ("torch"
                                           cfg.oversample, cfg.min_score, ext.maps, lap)
                 ms.setdefault(name, []).append(1e3 * (time.perf_counter() - t0))
                 counts.setdefault(name, []).append(len(xy))
-                if rep == 0 and name == next(iter(alikes)):
-                    feats["alike"].append((s.camera.undistort_points(xy), desc))
+                if name == next(iter(alikes)):
+                    first_xy, first_ms = xy, ms[name][-1]
+                    if rep == 0:
+                        feats["alike"].append((s.camera.undistort_points(xy), desc))
+            for name, fn in s.extra:
+                t0 = time.perf_counter()
+                fn(im, first_xy)
+                ms.setdefault(name, []).append(1e3 * (time.perf_counter() - t0))
+            if s.extra:
+                ms.setdefault("front_end", []).append(first_ms + sum(ms[name][-1] for name, _ in s.extra))
             ext0 = next(iter(alikes.values()))
             x = network_input(im, cfg.input_scale)
             for k, v in layer_ms(ext0.model, x).items():
@@ -177,13 +190,14 @@ def format_table(res: dict[str, Any]) -> list[str]:
     sets = [k for k, v in res.items() if isinstance(v, dict) and "ms" in v]
     if not sets:
         return []
-    methods = list(res[sets[0]]["ms"])
+    methods = list(dict.fromkeys(m for s in sets for m in res[s]["ms"]))  # a set may time further stages
     lines = ["| set | size | n | " + " | ".join(f"{m} ms (x ORB; fastest)" for m in methods) +
              " | match ms float / binary (fastest) |",
              "|---|---|---|" + "---|" * (len(methods) + 1)]
     for s in sets:
         r = res[s]
-        cells = [f"{r['ms'][m]:.1f} ({r['ratio'][m]:.2f}x; {r['ms_min'][m]:.1f})" for m in methods]
+        cells = [f"{r['ms'][m]:.1f} ({r['ratio'][m]:.2f}x; {r['ms_min'][m]:.1f})" if m in r["ms"] else "–"
+                 for m in methods]
         mm, mn = r["match_ms"], r["match_ms_min"]
         nan = float("nan")
         lines.append(f"| {s} | {r['size']} @ {r['input_scale']:g} | {r['n_features']} | " + " | ".join(cells) +
