@@ -62,3 +62,22 @@ def test_registry_entry_and_conf_errors():
         YOLOXMasks({**SMALL, "mask": {"roi": 7, "side": 32}})
     with pytest.raises(ConfigError, match="unknown key 'sid'"):
         YOLOXMasks({**SMALL, "mask": {"sid": 28}})
+
+
+def test_trained_checkpoint_keeps_the_source_boxes():
+    """models/yolox_nano_masks.pt: every tensor of the box network is the shipped YOLOX-nano's, bit for bit."""
+    from pathlib import Path
+
+    from vslam.nn.checkpoint import load_model
+
+    repo = Path(__file__).resolve().parents[2]
+    masks_path, box_path = repo / "models" / "yolox_nano_masks.pt", repo / "vslam" / "models" / "yolox_nano_slam.pt"
+    if not masks_path.is_file():
+        pytest.skip(f"{masks_path} not found")
+    m, ck = load_model(masks_path, DETECTORS)
+    b, _ = load_model(box_path, DETECTORS)
+    assert ck["arch"] == "yolox-nano-masks" and isinstance(m, YOLOXMasks)
+    sm = m.state_dict()
+    for k, v in b.state_dict().items():
+        assert torch.equal(sm[k], v), k
+    assert set(sm) - set(b.state_dict()) == {k for k in sm if k.startswith("mask_head.")}
