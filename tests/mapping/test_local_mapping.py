@@ -162,3 +162,29 @@ def test_fuse_into_a_list_of_ids_skips_removed_and_seen_ones():
     n = mapper._fuse_into(m.keyframes[1], ids)
     assert n == _fuse_into_plain(_mapper(ref, "rgbd"), ref.keyframes[1], ids)
     assert _state(m) == _state(ref)
+
+
+@pytest.mark.parametrize("full", [0, 12])
+def test_full_ba_keyframes_adjusts_every_early_keyframe(full):
+    """Monocular, map of at most full_ba_keyframes keyframes: the new keyframe's BA frees every keyframe but the
+    first (held fixed); beyond it (or off) the covisibility window of ba_window keyframes."""
+    m, X = _scene(3, "mono", n_kf=12)
+    # every true point seen by the first keyframe joins the map, observed wherever it is in view (the scene's
+    # keypoints list the visible points first, in order)
+    uv0, _, vis0 = project(m.keyframes[0].T_world_cam, X, CAM)
+    ids = {}
+    for j in np.flatnonzero(vis0):
+        ids[j] = m.add_point(X[j], 0, int(np.searchsorted(np.flatnonzero(vis0), j))).id
+    for k in range(1, 12):
+        _, _, vis = project(m.keyframes[k].T_world_cam, X, CAM)
+        for pos, j in enumerate(np.flatnonzero(vis)):
+            if j in ids:
+                m.add_observation(ids[j], k, pos)
+    mapper = LocalMapper(m, CAM, StereoCamera(500.0, 500.0, 320.0, 240.0, 0.0), "mono",
+                         MappingConfig(ba_window=4, full_ba_keyframes=full), BackendConfig())
+    problem = mapper._ba_job(11)[0]
+    free = set(problem.poses) - problem.fixed
+    if full:
+        assert free == set(range(1, 12)) and problem.fixed == {0}
+    else:
+        assert 11 in free and len(free) <= 4

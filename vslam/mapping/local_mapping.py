@@ -76,6 +76,9 @@ class MappingConfig:
     # runs on the second core (``RuntimeConfig.frontend_thread``), no longer saves time (bench rows ``*-async``;
     # docs/tracking.md, "BA lag").
     ba_lag_frames: int = 0
+    # Monocular: while the map holds at most this many keyframes, local BA adjusts all of them (the first held
+    # fixed), so the first map's scale is fitted over every early keyframe, not the newest window alone. 0 = off.
+    full_ba_keyframes: int = 0
 
 
 class GatheredPoints:
@@ -314,7 +317,10 @@ class LocalMapper:
     def _ba_job(self, kf_id: int):
         """-> (BAProblem, observation keyframe ids, point ids, fixed keyframes, IMU chain) or None (nothing to do)."""
         m = self.map
-        window = [kf_id] + m.covisible_keyframes(kf_id, self.cfg.min_shared, self.cfg.ba_window - 1)
+        if self.sensor == "mono" and len(m.keyframes) <= self.cfg.full_ba_keyframes:
+            window = [kf_id] + sorted(k for k in m.keyframes if k != kf_id)
+        else:
+            window = [kf_id] + m.covisible_keyframes(kf_id, self.cfg.min_shared, self.cfg.ba_window - 1)
         chain = self.inertial.chain() if self.inertial is not None else []
         window += [k for k in chain if k not in window]  # IMU-linked keyframes are optimised too
         pts = np.unique(np.concatenate([m.keyframes[k].point_ids for k in window]))
