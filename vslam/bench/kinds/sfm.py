@@ -50,6 +50,10 @@ class SfmOptions:
     max_features: int = 8192  # SIFT keypoints per frame
     threads: int = 2
     seed: int = 0
+    # COLMAP's first pair: its least triangulation angle (deg) and largest forward share of the motion (defaults:
+    # COLMAP's); a synthetic street driven straight ahead finds no pair under them
+    init_min_tri_angle: float = 16.0
+    init_max_forward_motion: float = 0.95
     # segment lengths (m) of t_rel / r_rel; empty: KITTI's 100..800 m
     rel_lengths: tuple[float, ...] = ()
     rel_step: int = 10  # frames between segment starts (KITTI devkit: 10)
@@ -136,7 +140,7 @@ def sfm_reference(cfg: Any, opts: SfmOptions, cache_root: Path) -> tuple[Traject
     folder.mkdir(parents=True)
     later_start = cfg.dataset.stride == 1 and cfg.dataset.drop and all(lo == 0 for lo, _ in cfg.dataset.drop)
     base = dataclasses.replace(cfg.dataset, drop=()) if later_start else cfg.dataset
-    db_folder = cache_root / _key(base, opts) if later_start else folder
+    db_folder = cache_root / _key(base, opts, database=True)
     t0 = time.perf_counter()
     stamps = _database(base, opts, db_folder)
     names = [n for n in _names(cfg.dataset) if n in stamps]
@@ -149,9 +153,13 @@ def sfm_reference(cfg: Any, opts: SfmOptions, cache_root: Path) -> tuple[Traject
     return traj, info
 
 
-def _key(dataset: Any, opts: SfmOptions) -> str:
+_MAPPER_OPTIONS = ("init_min_tri_angle", "init_max_forward_motion")
+
+
+def _key(dataset: Any, opts: SfmOptions, database: bool = False) -> str:
     """Cache folder name: the dataset's name and a hash of its non-default settings (the frame selection) and the
-    SfM settings (not the metric options)."""
+    SfM settings (not the metric options; mapper options only where not at their default, none for the features
+    and matches: ``database``)."""
     import pycolmap
 
     from vslam.config import to_dict
@@ -160,7 +168,8 @@ def _key(dataset: Any, opts: SfmOptions) -> str:
     default = to_dict(DatasetConfig())
     ds = {k: v for k, v in to_dict(dataset).items() if v != default.get(k)}
     src = {"v": CACHE_VERSION, "pycolmap": pycolmap.__version__, "dataset": ds,
-           "sfm": {k: v for k, v in dataclasses.asdict(opts).items() if k not in ("rel_lengths", "rel_step")}}
+           "sfm": {k: v for k, v in dataclasses.asdict(opts).items() if k not in ("rel_lengths", "rel_step")
+                   and not (k in _MAPPER_OPTIONS and (database or v == getattr(SfmOptions, k)))}}
     key = hashlib.sha1(json.dumps(src, sort_keys=True, default=str).encode()).hexdigest()[:12]
     return f"{Path(str(dataset.path or dataset.kind)).name}-{key}"
 
@@ -255,6 +264,8 @@ def _map(db: Path, names: list[str], stamps: dict[str, float], opts: SfmOptions,
     mapper.mapper.random_seed = mapper.triangulation.random_seed = opts.seed
     mapper.ba_refine_focal_length = mapper.ba_refine_principal_point = mapper.ba_refine_extra_params = False
     mapper.extract_colors = False
+    mapper.mapper.init_min_tri_angle = opts.init_min_tri_angle
+    mapper.mapper.init_max_forward_motion = opts.init_max_forward_motion
     if len(names) < len(stamps):
         mapper.image_names = names
     models = pycolmap.incremental_mapping(db, folder, folder / "sparse", mapper)
