@@ -108,3 +108,11 @@ def test_table():
     text = "\n".join(lines)
     assert "| x-sfm | 10 (10) | 0.3000 | 0.1500 | **2.00x** | 1.50 % / 0.20° | – | 20 | 0.900, 1.000, 1.100 | 70.0 | t |" in text
     assert "**failed**: boom" in text
+
+
+def test_a_reference_that_breaks_its_own_scale_gives_no_ratio():
+    ok = sfm.reference_check({"ate_rmse": 0.3, "sfm_ate": 0.15, "sfm_ratio": 2.0, "sfm_scale_thirds": [1.05, 0.98, 0.97]}, 0.1)
+    assert ok["sfm_ratio"] == 2.0 and "sfm_invalid" not in ok
+    bad = sfm.reference_check({"ate_rmse": 0.3, "sfm_ate": 7.7, "sfm_ratio": 0.04, "sfm_scale_thirds": [2.9, 0.8, 0.9]}, 0.1)
+    assert bad["sfm_ratio"] is None and "2.90" in bad["sfm_invalid"]
+    assert "not a reference" in "\n".join(sfm.table([(BenchRow(name="k", kind="sfm"), {**bad, "frames": 1})]))

@@ -57,6 +57,8 @@ class SfmOptions:
     # segment lengths (m) of t_rel / r_rel; empty: KITTI's 100..800 m
     rel_lengths: tuple[float, ...] = ()
     rel_step: int = 10  # frames between segment starts (KITTI devkit: 10)
+    # the SfM model is a reference only if its own scale per third stays within this of its whole-run scale
+    max_reference_jump: float = 0.1
 
 
 def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
@@ -79,6 +81,19 @@ def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str
         row.update(_metrics(ref, gt, cfg.eval, lengths, opts.rel_step, "sfm"))
         row["sfm_ratio"] = row["ate_rmse"] / row["sfm_ate"] if row.get("sfm_ate") else None
     row["rel_lengths"] = list(lengths)
+    return reference_check(row, opts.max_reference_jump)
+
+
+def reference_check(row: dict[str, Any], max_jump: float) -> dict[str, Any]:
+    """An SfM model whose own scale changes between thirds of the run by more than ``max_jump`` is no reference:
+    its ratio is dropped (None) and ``sfm_invalid`` says why."""
+    thirds = [x for x in row.get("sfm_scale_thirds") or [] if x is not None]
+    jump = max(abs(x - 1.0) for x in thirds) if len(thirds) == 3 else None
+    row["sfm_scale_jump"] = jump
+    if row.get("sfm_ate") is not None and (jump is None or jump > max_jump):
+        row["sfm_ratio"] = None
+        row["sfm_invalid"] = (f"the SfM model's own scale per third is {', '.join(f'{x:.2f}' for x in thirds)} "
+                              f"of its whole-run scale: not a reference")
     return row
 
 
@@ -168,7 +183,8 @@ def _key(dataset: Any, opts: SfmOptions, database: bool = False) -> str:
     default = to_dict(DatasetConfig())
     ds = {k: v for k, v in to_dict(dataset).items() if v != default.get(k)}
     src = {"v": CACHE_VERSION, "pycolmap": pycolmap.__version__, "dataset": ds,
-           "sfm": {k: v for k, v in dataclasses.asdict(opts).items() if k not in ("rel_lengths", "rel_step")
+           "sfm": {k: v for k, v in dataclasses.asdict(opts).items()
+                   if k not in ("rel_lengths", "rel_step", "max_reference_jump")
                    and not (k in _MAPPER_OPTIONS and (database or v == getattr(SfmOptions, k)))}}
     key = hashlib.sha1(json.dumps(src, sort_keys=True, default=str).encode()).hexdigest()[:12]
     return f"{Path(str(dataset.path or dataset.kind)).name}-{key}"
@@ -308,10 +324,16 @@ def table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
         segs = ", ".join(f"{x:g}" for x in r.get("rel_lengths") or [])
         lines.append(
             f"| {row.name} | {r.get('frames_read', r.get('frames'))} ({sfm.get('registered', '–')}) | "
-            f"{fmt(r.get('ate_rmse'), '.4f')} | {fmt(r.get('sfm_ate'), '.4f')} | **{fmt(r.get('sfm_ratio'), '.2f')}x** | "
+            f"{fmt(r.get('ate_rmse'), '.4f')} | {fmt(r.get('sfm_ate'), '.4f')} | {_ratio(r)} | "
             f"{_rel(r, 'vslam')} | {_rel(r, 'sfm')} | {segs} | {thirds} | {fmt(r.get('ms_per_frame'), '.1f')} | "
             f"{row.target} |")
     return lines
+
+
+def _ratio(r: dict[str, Any]) -> str:
+    if r.get("sfm_invalid"):
+        return f"– ({r['sfm_invalid']})"
+    return f"**{fmt(r.get('sfm_ratio'), '.2f')}x**"
 
 
 def _rel(r: dict[str, Any], prefix: str) -> str:
