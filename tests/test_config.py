@@ -40,6 +40,15 @@ def test_wrong_types_rejected():
         from_dict(Outer, {"scale": True})
 
 
+def test_exponent_without_a_dot_is_a_number():
+    """YAML 1.1 reads 5e-5 as text (its floats need a dot): a float field takes it as the number it writes, from
+    --set and from a file; text that is no number is still refused."""
+    assert from_dict(Outer, parse_overrides(["scale=5e-5"])).scale == 5e-5
+    assert from_dict(Outer, {"scale": "-2E3"}).scale == -2000.0 and from_dict(Outer, {"scale": ".5"}).scale == 0.5
+    with pytest.raises(ConfigError, match="'scale' must be a number, got '5e'"):
+        from_dict(Outer, {"scale": "5e"})
+
+
 def test_yaml_file_errors(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("dataset:\n  kind: [unclosed\n")

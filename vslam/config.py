@@ -143,6 +143,8 @@ def _coerce(tp: Any, value: Any, source: str, name: str, nonnegative: bool = Fal
     if tp is Any:
         return value
     if tp is float:
+        if isinstance(value, str) and _FLOAT_TEXT.fullmatch(value.strip()):
+            value = float(value)  # YAML 1.1 reads 5e-5 (no dot) as text; it is a number here
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where}: '{name}' must be a number, got {value!r}")
         return _check_sign(float(value), where, name, nonnegative)
@@ -159,6 +161,9 @@ def _coerce(tp: Any, value: Any, source: str, name: str, nonnegative: bool = Fal
             raise ConfigError(f"{where}: '{name}' must be a string, got {value!r}")
         return value
     return value
+
+
+_FLOAT_TEXT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?")
 
 
 def _check_sign(value: int | float, source: str, name: str, nonnegative: bool) -> int | float:
