@@ -54,8 +54,8 @@ class TrackingConfig:
     ratio: float = 0.9  # best / second best descriptor distance within the radius
     # A frame this long (seconds) after the last tracked one is a wide baseline (a low frame rate, a dropped
     # stretch): the projection search uses radius_lost_px and keyframe matching the looser ratio_wide, whose
-    # extra matches RANSAC sorts out. At 0.5-1 s between frames the 0.8 ratio test leaves too few true matches
-    # for PnP although the keyframe shares a third of its points with the frame (docs/tracking.md).
+    # extra matches RANSAC sorts out: at 0.5-1 s between frames the 0.8 ratio test leaves too few true matches
+    # for PnP (docs/tracking.md, "Never lost").
     wide_gap_s: float = 0.25
     ratio_wide: float = 0.9
     min_matches: int = 30  # fewer projection matches -> descriptor matching against keyframes
