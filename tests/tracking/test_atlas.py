@@ -257,6 +257,33 @@ def test_a_camera_back_in_an_archived_map_takes_it_up_again(tmp_path):
     assert max(loaded.map.keyframes) > max(m1.keyframes)  # map 0's new keyframes continue after map 1's ids
 
 
+def test_at_a_low_frame_rate_one_unmeasured_frame_does_not_start_a_map():
+    """3 Hz (every 10th frame), one frame showing another room (its image only: depth and pose unchanged): with
+    ``atlas.min_lost_frames`` 2 it is predicted and the next frame is tracked in map 0 again; with 1 (a new map
+    at the first unmeasured frame) it starts map 1, and the next frame, found in archived map 0, takes it up again."""
+    from vslam.tracking.atlas import AtlasConfig
+
+    one = SyntheticSequence(SyntheticConfig(n_frames=130, **SMALL))
+    other = SyntheticSequence(SyntheticConfig(n_frames=130, second_room=1, **SMALL))
+    runs = {}
+    for lost_frames in (2, 1):
+        st = SlamTracker(one.calibration, "rgbd", SlamConfig(atlas=AtlasConfig(min_lost_frames=lost_frames)))
+        seen = []
+        for i in range(0, 130, 10):
+            f = one.frame(i)
+            if i == 100:
+                f.image = other.frame(i).image
+            e = st.track(f)
+            seen.append((e.status_name, e.map_id))
+        runs[lost_frames] = (seen, st.recovery_stats())
+    seen, rec = runs[2]
+    assert seen[:10] == [("tracked", 0)] * 10 and seen[10] == ("predicted", 0) and seen[11:] == [("tracked", 0)] * 2
+    assert rec == {"new_maps": 0, "merges": 0, "map_switches": 0}
+    seen, rec = runs[1]
+    assert seen[10] == ("new_map", 1) and seen[11] == ("relocalised", 0) and seen[12] == ("tracked", 0)
+    assert rec == {"new_maps": 1, "merges": 0, "map_switches": 1}
+
+
 def test_a_new_map_that_meets_the_old_one_is_merged(tmp_path):
     """The loop route with 175 frames cut out, without the wide-baseline search (``tracking.wide_gap_s`` out of
     reach) and without relocalisation into archived maps: the camera, back 0.24 m / 18 deg from where it
