@@ -42,8 +42,9 @@ class MapRecovery:
 
     def _measure(self, frame: Frame, feats: Features, ur: np.ndarray, T_pred: np.ndarray) -> TrackResult:
         """The recovery ladder, each step only when the ones before failed: the motion model's projection search,
-        the reference keyframe by descriptor, after a loss the newest keyframes (``Tracker.track``); place
-        relocalisation over the whole map (``slam.loop``); the dense depth step (RGB-D, ``slam.dense``)."""
+        the reference keyframe by descriptor, after a loss or a wide gap the newest keyframes (``Tracker.track``);
+        place relocalisation over the whole map (``slam.loop``); the dense depth step (RGB-D, ``slam.dense``); the
+        archived maps (``_relocalise_archived``), one of which then becomes the current map again."""
         wide = self._t_tracked is not None and frame.timestamp - self._t_tracked >= self.cfg.tracking.wide_gap_s
         res = self.tracker.track(feats, ur, T_pred, self.ref_kf, after_loss=not self._prev_tracked,  # type: ignore[arg-type]
                                  last_ids=self._last_ids, wide=wide)
@@ -58,7 +59,8 @@ class MapRecovery:
     def _lost(self, frame: Frame, feats: Features, depth: np.ndarray, ur: np.ndarray, T_pred: np.ndarray,
               est: FrameEstimate) -> None:
         """A frame no recovery step measured: predicted (motion model) at first; once lost for
-        ``atlas.new_map_after_s`` a new map from this frame if it can make one; past ``atlas.bridge_s`` no pose."""
+        ``atlas.new_map_after_s`` and ``atlas.min_lost_frames`` frames in a row (or right after a gap in the
+        images) a new map from this frame if it can make one; past ``atlas.bridge_s`` no pose."""
         T_last = self.T_world_cam
         self.T_world_cam = T_pred
         log.debug("frame %d not tracked; pose predicted", frame.index)
