@@ -37,6 +37,15 @@ def train_config(cls: type, args: argparse.Namespace) -> Any:
     return load_config(cls, args.config, over)
 
 
+def run_trainer(args: argparse.Namespace, config_cls: type, train: Callable[..., Any], unit: str) -> Any:
+    """``train`` on the config from the command line (``train_config``), with a progress bar counting ``unit``
+    -> what it returns (its metrics)."""
+    from vslam.progress import progress_bar
+
+    with progress_bar("training", unit=unit, quiet=args.quiet) as bar:
+        return train(train_config(config_cls, args), progress=bar)
+
+
 def add_cli(train_sub: argparse._SubParsersAction) -> None:
     _add_detector(train_sub)
     _add_place(train_sub)
@@ -64,10 +73,8 @@ def _add_detector(train_sub: argparse._SubParsersAction) -> None:
 
 def cmd_train_detector(args: argparse.Namespace) -> int:
     from vslam.dynamic.train import TrainConfig, train
-    from vslam.progress import progress_bar
 
-    with progress_bar("training", unit="it", quiet=args.quiet) as bar:
-        metrics = train(train_config(TrainConfig, args), progress=bar)
+    metrics = run_trainer(args, TrainConfig, train, "it")
     if metrics:  # under torchrun only rank 0 evaluates
         print(json.dumps(metrics, indent=2))
     return 0
@@ -93,10 +100,8 @@ def _add_place(train_sub: argparse._SubParsersAction) -> None:
 
 def cmd_train_place(args: argparse.Namespace) -> int:
     from vslam.loop.train_place import PlaceTrainConfig, train
-    from vslam.progress import progress_bar
 
-    with progress_bar("training", unit="step", quiet=args.quiet) as bar:
-        metrics = train(train_config(PlaceTrainConfig, args), progress=bar)
+    metrics = run_trainer(args, PlaceTrainConfig, train, "step")
     if metrics:  # under torchrun only rank 0 evaluates
         print(json.dumps(metrics["eval"], indent=2))
     return 0
@@ -109,10 +114,8 @@ def _add_keypoints(train_sub: argparse._SubParsersAction) -> None:
 
 def cmd_train_keypoints(args: argparse.Namespace) -> int:
     from vslam.features.train_keypoints import KeypointTrainConfig, train
-    from vslam.progress import progress_bar
 
-    with progress_bar("training", unit="step", quiet=args.quiet) as bar:
-        metrics = train(train_config(KeypointTrainConfig, args), progress=bar)
+    metrics = run_trainer(args, KeypointTrainConfig, train, "step")
     if metrics:
         print(json.dumps({k: metrics[k] for k in ("loss", "stage_s") if k in metrics} | {"eval": metrics.get("eval")}, indent=2))
     return 0
@@ -126,10 +129,8 @@ def _add_yolox_masks(train_sub: argparse._SubParsersAction) -> None:
 
 def cmd_train_yolox_masks(args: argparse.Namespace) -> int:
     from vslam.dynamic.train_yolox_masks import MaskTrainConfig, train
-    from vslam.progress import progress_bar
 
-    with progress_bar("training", unit="it", quiet=args.quiet) as bar:
-        metrics = train(train_config(MaskTrainConfig, args), progress=bar)
+    metrics = run_trainer(args, MaskTrainConfig, train, "it")
     print(json.dumps(metrics, indent=2))
     return 0
 
@@ -141,9 +142,7 @@ def _add_yolox(train_sub: argparse._SubParsersAction) -> None:
 
 def cmd_train_yolox(args: argparse.Namespace) -> int:
     from vslam.dynamic.yolox_train import YoloxTrainConfig, train
-    from vslam.progress import progress_bar
 
-    with progress_bar("training", unit="it", quiet=args.quiet) as bar:
-        metrics = train(train_config(YoloxTrainConfig, args), progress=bar)
+    metrics = run_trainer(args, YoloxTrainConfig, train, "it")
     print(json.dumps(metrics, indent=2))
     return 0

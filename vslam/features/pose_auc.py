@@ -26,6 +26,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from vslam.geometry.se3 import so3_angle_deg
+
 Method = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]  # BGR or grey uint8 image -> (xy (N,2), desc (N,D))
 Progress = Callable[[int, int], None]
 
@@ -48,10 +50,6 @@ def sequences(root: Path) -> dict[str, tuple[str, int]]:
     return {k: v for k, v in seqs.items() if (root / v[0]).exists()}
 
 
-def angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
-
-
 def relative_pose(T_w1: np.ndarray, T_w2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(R, t) of camera 1 in camera 2: x2 = R x1 + t (what ``recoverPose`` returns for points 1 -> 2)."""
     T21 = np.linalg.inv(T_w2) @ T_w1
@@ -60,7 +58,7 @@ def relative_pose(T_w1: np.ndarray, T_w2: np.ndarray) -> tuple[np.ndarray, np.nd
 
 def pose_error(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray) -> tuple[float, float]:
     """(rotation error, translation direction error) in degrees; the direction error ignores the sign."""
-    err_r = angle_deg(R_est.T @ R_gt)
+    err_r = so3_angle_deg(R_est.T @ R_gt)
     n = np.linalg.norm(t_est) * np.linalg.norm(t_gt)
     cos = float(np.dot(t_est.ravel(), t_gt.ravel()) / max(n, 1e-12))
     err_t = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))

@@ -73,6 +73,11 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(np.asarray(w, dtype=np.float64)).as_matrix()
 
 
+def so3_angle_deg(R: np.ndarray) -> float:
+    """The angle (degrees) of one rotation (3,3), from its trace."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
 def so3_log(R: np.ndarray) -> np.ndarray:
     """(..., 3, 3) rotations -> (..., 3) rotation vectors (radians)."""
     return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()

@@ -70,7 +70,12 @@ def _write_final_maps(path: Path, stats: list[dict], odo: Odometry) -> None:
         sw = csv.writer(f)
         sw.writerow(STAT_COLUMNS)
         for r in stats:
-            sw.writerow([_fmt_stat(c, r.get(c, "")) for c in STAT_COLUMNS])
+            sw.writerow(_stat_cells(r))
+
+
+def _stat_cells(row: dict) -> list[str]:
+    """One stats.csv line: the row's values in STAT_COLUMNS order, blank where it has none."""
+    return [_fmt_stat(c, row.get(c, "")) for c in STAT_COLUMNS]
 
 
 def _fmt_stat(col: str, v: object) -> str:
@@ -217,7 +222,7 @@ class Pipeline:
                         row = {"index": frame.index, "timestamp": frame.timestamp, "dropped": dropped, "tracked": 0,
                                "status": "duplicate_time", "uncertain": 1, "pose_std_m": float("nan"),
                                "pose_std_deg": float("nan")}
-                        sw.writerow([_fmt_stat(c, row.get(c, "")) for c in STAT_COLUMNS])
+                        sw.writerow(_stat_cells(row))
                         fstats.flush()
                         stats.append(row)
                         continue
@@ -235,7 +240,7 @@ class Pipeline:
                            "n_features": est.n_features, "n_matches": est.n_matches, "n_inliers": est.n_inliers,
                            "n_lines": est.n_lines, "n_line_inliers": est.n_line_inliers, "imu": est.imu,
                            "ms_decode": ms_decode, **{f"ms_{k2}": v for k2, v in est.times_ms.items()}, "ms_total": ms}
-                    sw.writerow([_fmt_stat(c, row.get(c, "")) for c in STAT_COLUMNS])
+                    sw.writerow(_stat_cells(row))
                     fstats.flush()
                     stats.append(row)
                     if viewer is not None:

@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 from vslam.backend.ba import BackendConfig, StereoCamera
 from vslam.data.types import PinholeCamera
 from vslam.features.base import Features
+from vslam.geometry.se3 import so3_angle_deg
 from vslam.loop.database import KeyframeDatabase
 from vslam.mapping.map import Map
 from vslam.tracking.tracker import TrackingConfig, Tracker, TrackResult
@@ -191,8 +192,7 @@ class Atlas:
         last ``merge_consistency`` keyframes (this one included) all found it, with agreeing transforms."""
         if self.votes:
             last_id, T_last = self.votes[-1]
-            dR = T_last[:3, :3].T @ T_old_new[:3, :3]
-            angle = np.degrees(np.arccos(np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0)))
+            angle = so3_angle_deg(T_last[:3, :3].T @ T_old_new[:3, :3])
             far = metric and float(np.linalg.norm(T_last[:3, 3] - T_old_new[:3, 3])) > self.cfg.merge_agree_m
             if last_id != map_id or angle > self.cfg.merge_agree_deg or far:
                 self.votes = []

@@ -103,15 +103,9 @@ class MapRecovery:
         atlas.votes = []
         if atlas.descriptor is None and (atlas.cfg.merge or atlas.cfg.relocalise):
             atlas.descriptor = self._place_descriptor()
-        if self.map.keyframes:
-            old_db = self.loop.db if self.loop is not None else None
-            atlas.archive(self.map_id, self.map, old_db)
+        if self._archive_current():
             self.map_id = atlas.new_id()
-        if self.loop is not None:
-            from vslam.loop.database import KeyframeDatabase
-
-            self.loop.db = KeyframeDatabase(self.loop.descriptor.dim)
-            self.loop._groups = []
+        self._set_loop_database(None)
         self._use_map(self.map.successor())
         for s in self.stages:
             s.on_new_map()
@@ -119,8 +113,7 @@ class MapRecovery:
         log.info("frame %d: tracking lost; map %d started", frame.index, self.map_id)
         if self.mono_init is None:
             return self._initialize(frame, feats, depth, ur, T0)
-        self.mono_init = MonoInitializer(self.cam, self.cfg.init)
-        self._pre_init = []
+        self._fresh_mono_init()
         self._restart = T0  # monocular: the next two-view initialisation starts the map (``track``)
         return False
 
@@ -155,21 +148,37 @@ class MapRecovery:
             self._flush_mapping()
         m, db = atlas.take(map_id)
         m.continue_ids(self.map)  # ids stay unique across the run's maps
-        if self.map.keyframes:
-            atlas.archive(self.map_id, self.map, self.loop.db if self.loop is not None else None)
-        if self.loop is not None:
-            from vslam.loop.database import KeyframeDatabase
-
-            self.loop.db = db if db is not None else KeyframeDatabase(self.loop.descriptor.dim)
-            self.loop._groups = []
+        self._archive_current()
+        self._set_loop_database(db)
         self._use_map(m)
         self.map_id = map_id
         self._restart = None
         if self.mono_init is not None:
-            self.mono_init = MonoInitializer(self.cam, self.cfg.init)
-            self._pre_init = []
+            self._fresh_mono_init()
         atlas.switches += 1
         atlas.votes = []
+
+    def _archive_current(self) -> bool:
+        """Keep the current map (and the loop closer's database of it) in the Atlas -> False when it has no
+        keyframe yet, and nothing was kept."""
+        if not self.map.keyframes:
+            return False
+        self.atlas.archive(self.map_id, self.map, self.loop.db if self.loop is not None else None)  # type: ignore[union-attr]
+        return True
+
+    def _set_loop_database(self, db) -> None:
+        """The loop closer's place database for the map that becomes current: ``db``, or an empty one."""
+        if self.loop is None:
+            return
+        from vslam.loop.database import KeyframeDatabase
+
+        self.loop.db = db if db is not None else KeyframeDatabase(self.loop.descriptor.dim)
+        self.loop._groups = []
+
+    def _fresh_mono_init(self) -> None:
+        """Monocular: the two-view initialiser starts over (the frames it held belong to a map given up)."""
+        self.mono_init = MonoInitializer(self.cam, self.cfg.init)
+        self._pre_init = []
 
     def _place_descriptor(self):
         """The keyframes' place descriptor for merging: the loop closer's, else the bag of words over ORB

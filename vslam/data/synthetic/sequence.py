@@ -119,10 +119,7 @@ class SyntheticSequence(Sequence):
         hundreds of MB, and a process that renders no frame (the tracking process, when the front end runs in a
         child) then never holds it."""
         if self._scene is None:
-            T = self._T_wc0
-            centres = np.stack([T[:, :3, 3], (T @ self.T_cam0_cam1)[:, :3, 3]], axis=1)
-            self._scene = build_scene(self.cfg, centres, self._tau)
-            self._renderer = Renderer(self._scene, self.calibration.cam0)
+            self._scene, self._renderer = self._build_scene(self.cfg)
             logger.debug("%s: %d frames, %d IMU samples, %d movers, atlas %s", self.name, len(self), len(self._imu),
                          len(self._scene.movers), self._scene.atlas.shape)
         return self._scene
@@ -224,11 +221,15 @@ class SyntheticSequence(Sequence):
         if not self.cfg.second_room or i < self.cfg.second_room:
             return scene, self._renderer
         if self._room2 is None:
-            T = self._T_wc0
-            centres = np.stack([T[:, :3, 3], (T @ self.T_cam0_cam1)[:, :3, 3]], axis=1)
-            other = build_scene(dataclasses.replace(self.cfg, seed=self.cfg.seed + 1), centres, self._tau)
-            self._room2 = (other, Renderer(other, self.calibration.cam0))
+            self._room2 = self._build_scene(dataclasses.replace(self.cfg, seed=self.cfg.seed + 1))
         return self._room2
+
+    def _build_scene(self, cfg: SyntheticConfig) -> tuple[Scene, Renderer]:
+        """The scene of ``cfg`` around this sequence's camera path (both cameras' centres), and its renderer."""
+        T = self._T_wc0
+        centres = np.stack([T[:, :3, 3], (T @ self.T_cam0_cam1)[:, :3, 3]], axis=1)
+        scene = build_scene(cfg, centres, self._tau)
+        return scene, Renderer(scene, self.calibration.cam0)
 
     def _blurred(self, i: int, image: np.ndarray) -> np.ndarray:
         return cv2.GaussianBlur(image, (0, 0), self.cfg.blur_sigma) if self._blur[i] else image
