@@ -13,12 +13,12 @@ ROOT = Path(__file__).resolve().parents[1] / "vslam"
 LAYERS = [
     ["errors", "paths", "resources", "outputs", "progress", "quantize", "childproc", "config", "ddp", "runtime"],
     ["geometry", "data", "nn"],
-    ["features", "inertial", "eval", "viz"],
+    ["features", "inertial", "viz"],
     ["backend"],
     ["mapping", "dynamic"],
     ["loop"],
     ["tracking"],
-    ["pipeline", "profiling", "fusion"],
+    ["pipeline", "profiling", "fusion", "eval", "train"],
     ["bench", "cli", "__main__"],
 ]
 LAYER = {p: i for i, names in enumerate(LAYERS) for p in names}

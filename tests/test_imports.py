@@ -17,8 +17,8 @@ sys.meta_path.insert(0, Block())
 
 
 def test_networks_import_without_the_slam_back_end():
-    mods = ["vslam.nn.device", "vslam.dynamic.train", "vslam.dynamic.detector", "vslam.features.train_keypoints",
-            "vslam.features.convpoint", "vslam.loop.vladnet", "vslam.loop.train_place", "vslam.profiling", "vslam.bench",
+    mods = ["vslam.nn.device", "vslam.train.detector", "vslam.dynamic.detector", "vslam.train.keypoints",
+            "vslam.features.convpoint", "vslam.loop.vladnet", "vslam.train.place", "vslam.profiling", "vslam.bench",
             "vslam.cli"]
     code = BLOCK + "".join(f"import {m}\n" for m in mods) + "from vslam.profiling import network_speed\n"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)

@@ -13,11 +13,18 @@ from vslam.data.types import PinholeCamera
 from vslam.errors import ConfigError
 from vslam.features import FeatureConfig, make_extractor
 from vslam.features.convpoint import (
-    INT8_FLOAT_MODULES, ConvPointConfig, ConvPointInt8, ConvPointNet, _Core, default_weights, load_convpoint,
-    save_convpoint, standardize,
+    INT8_FLOAT_MODULES,
+    ConvPointConfig,
+    ConvPointInt8,
+    ConvPointNet,
+    _Core,
+    default_weights,
+    load_convpoint,
+    save_convpoint,
+    standardize,
 )
-from vslam.features.shapes import render_shapes
 from vslam.quantize import build, calibrate, load_qparams, qparams_path, save_qparams
+from vslam.train.shapes import render_shapes
 
 SMALL = ConvPointConfig(channels=(8, 16, 16, 32), desc_dim=32)
 

@@ -9,9 +9,9 @@ torch = pytest.importorskip("torch")
 
 from vslam.dynamic.attention import ATTENTION, make_attention  # noqa: E402
 from vslam.dynamic.detector import Detector, letterbox, load_detector, save_checkpoint  # noqa: E402
-from vslam.dynamic.loss import ciou, detection_loss  # noqa: E402
 from vslam.dynamic.model import DetectorConfig, YoloDetector, decode, fuse_for_inference, recalibrate_bn  # noqa: E402
 from vslam.nn.ops import batched_nms, box_iou, nms  # noqa: E402
+from vslam.train.detector_loss import ciou, detection_loss  # noqa: E402
 
 torch.set_num_threads(1)
 TINY = dict(width=0.125, num_classes=2)
@@ -150,7 +150,7 @@ def test_detector_imports_without_the_slam_stack():
     import sys
 
     code = ("import sys\nfor m in ('scipy', 'yaml', 'gtsam', 'pycolmap', 'open3d'): sys.modules[m] = None\n"
-            "import vslam.dynamic.detector, vslam.dynamic.loss, vslam.dynamic.model")
+            "import vslam.dynamic.detector, vslam.train.detector_loss, vslam.dynamic.model")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
 
 
@@ -174,10 +174,10 @@ def test_committed_tiny_model_finds_a_held_out_synthetic_mover():
 def test_device_choice():
     """"auto" is the CPU where torch sees no GPU, asking for CUDA there is a config error naming the field, and
     the network input is the pixels scaled to [0, 1], on whichever device."""
-    from vslam.nn.device import pick_device
     from vslam.dynamic.config import DynamicConfig
     from vslam.dynamic.detector import to_tensor
     from vslam.errors import ConfigError
+    from vslam.nn.device import pick_device
 
     assert pick_device("cpu", "x").type == "cpu"
     assert pick_device("auto", "x").type == ("cuda" if torch.cuda.is_available() else "cpu")

@@ -9,9 +9,18 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from vslam.dynamic.detector import Detector, instance_masks, letterbox, save_checkpoint  # noqa: E402
-from vslam.dynamic.loss import MaskTargets, detection_loss, mask_loss  # noqa: E402
-from vslam.dynamic.model import (DetectorConfig, YoloDetector, assemble_masks, box_crop, fuse_for_inference,  # noqa: E402
-                                 mask_head_modules, mask_outputs, recalibrate_bn, split_outputs)
+from vslam.dynamic.model import (  # noqa: E402
+    DetectorConfig,
+    YoloDetector,
+    assemble_masks,
+    box_crop,
+    fuse_for_inference,
+    mask_head_modules,
+    mask_outputs,
+    recalibrate_bn,
+    split_outputs,
+)
+from vslam.train.detector_loss import MaskTargets, detection_loss, mask_loss  # noqa: E402
 
 torch.set_num_threads(1)
 TINY = dict(width=0.125, num_classes=2)
@@ -154,8 +163,8 @@ def test_detector_returns_one_mask_per_box_and_none_without_a_head():
 def test_a_detection_checkpoint_grows_a_mask_head_and_a_frozen_detector_keeps_its_boxes(tmp_path):
     from dataclasses import replace
 
-    from vslam.dynamic.train import TrainConfig, _load_init, _train_mode
     from vslam.errors import ConfigError
+    from vslam.train.detector import TrainConfig, _load_init, _train_mode
 
     torch.manual_seed(0)
     det = YoloDetector(DetectorConfig(**TINY)).eval()

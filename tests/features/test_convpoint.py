@@ -10,10 +10,20 @@ from vslam.data.types import PinholeCamera
 from vslam.errors import ConfigError
 from vslam.features import FeatureConfig, make_extractor
 from vslam.features.convpoint import (
-    ConvPointConfig, ConvPointNet, DetectSettings, batch_tensor, default_weights, detect_batch, heatmap, load_convpoint,
-    nms, sample_descriptors, save_convpoint, subpixel,
+    ConvPointConfig,
+    ConvPointNet,
+    DetectSettings,
+    batch_tensor,
+    default_weights,
+    detect_batch,
+    heatmap,
+    load_convpoint,
+    nms,
+    sample_descriptors,
+    save_convpoint,
+    subpixel,
 )
-from vslam.features.shapes import render_shapes
+from vslam.train.shapes import render_shapes
 
 SMALL = ConvPointConfig(channels=(8, 16, 16, 32), desc_dim=32)
 

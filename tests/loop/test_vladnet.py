@@ -9,8 +9,16 @@ import pytest
 import torch
 
 from vslam.errors import ConfigError
-from vslam.loop.retrieval import recall_at
-from vslam.loop.vladnet import NetVLAD, VladNet, VladNetConfig, VladNetDescriptor, load_vladnet, preprocess, save_vladnet
+from vslam.eval.place import recall_at
+from vslam.loop.vladnet import (
+    NetVLAD,
+    VladNet,
+    VladNetConfig,
+    VladNetDescriptor,
+    load_vladnet,
+    preprocess,
+    save_vladnet,
+)
 
 SMALL = VladNetConfig(channels=(8, 16, 24, 32), clusters=8, out_dim=64, input_size=(80, 60))
 
@@ -59,7 +67,7 @@ def test_save_load_round_trip_and_bad_files(tmp_path) -> None:
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ConfigError, match="junk.pt: not a VLADNet checkpoint"):
         load_vladnet(tmp_path / "junk.pt")
-    from vslam.loop.train_place import PlaceTrainConfig
+    from vslam.train.place import PlaceTrainConfig
 
     with pytest.raises(ConfigError, match="mix must be 4 shares"):
         PlaceTrainConfig(mix=(0.5, 0.5))
@@ -83,7 +91,7 @@ def test_toy_training_reduces_the_loss_and_improves_recall(tmp_path) -> None:
     gradient), positives and negatives swapped, and descriptors that ignore the learned weights. Measured over
     seeds 0-5, torch threads 1 and 2, with and without torch.use_deterministic_algorithms: loss last/first
     0.12-0.31 (untrained, lr 1e-9: 0.95-0.97), R@1+5+10 gain +1.13..+1.47 (untrained: -0.83..-0.10)."""
-    from vslam.loop.train_place import PlaceTrainConfig, train
+    from vslam.train.place import PlaceTrainConfig, train
 
     m = train(PlaceTrainConfig(out=str(tmp_path / "toy"), toy=True, threads=1, val_seed=11))
     assert m["steps"] == 300
@@ -97,8 +105,8 @@ def test_toy_training_reduces_the_loss_and_improves_recall(tmp_path) -> None:
 
 def test_shipped_weights_recall_on_held_out_places() -> None:
     """vslam/models/vladnet_v1.pt loads offline and keeps its held-out recall (regression bounds under the measured)."""
+    from vslam.eval.place import evaluate_held_out, held_out_sets
     from vslam.loop.descriptor import default_vladnet_path, make_place_descriptor
-    from vslam.loop.retrieval import evaluate_held_out, held_out_sets
     from vslam.paths import data_root
 
     d = make_place_descriptor("vladnet")

@@ -14,8 +14,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from vslam.nn.checkpoint import load_weights, read_checkpoint  # noqa: E402
 from vslam.errors import ConfigError  # noqa: E402
+from vslam.nn.checkpoint import load_weights, read_checkpoint  # noqa: E402
 
 torch.set_num_threads(1)
 
@@ -223,7 +223,7 @@ def test_the_right_kind_still_loads(tmp_path):
 def _keypoint_last(path):
     """A ``last.pt`` as ``vslam train keypoints --toy`` writes it."""
     from vslam.features.convpoint import ConvPointConfig, ConvPointNet
-    from vslam.features.train_keypoints import _optim
+    from vslam.train.keypoints import _optim
 
     model = ConvPointNet(ConvPointConfig(**TINY_POINT))
     opt, sched = _optim(model, 1e-3, 1e-4, 60)
@@ -250,7 +250,7 @@ def _detector_last(path):
     """A ``last.pt`` as ``vslam train detector --toy`` writes it."""
     from vslam.dynamic.detector import save_checkpoint
     from vslam.dynamic.model import DetectorConfig, YoloDetector
-    from vslam.dynamic.train import TrainConfig, resolve
+    from vslam.train.detector import TrainConfig, resolve
 
     cfg = resolve(TrainConfig(toy=True))
     model = YoloDetector(DetectorConfig(cfg.scale, cfg.attention, len(cfg.classes), width=cfg.width))
@@ -341,7 +341,7 @@ def _same_weights(a: pathlib.Path, b: pathlib.Path) -> None:
 def test_place_training_resumes_to_the_same_weights(tmp_path, monkeypatch):
     """A toy run killed after its checkpoint at step 10 and resumed from that ``last.pt`` (weights-only) ends
     with the weights of an uninterrupted one."""
-    from vslam.loop.train_place import PlaceTrainConfig, train
+    from vslam.train.place import PlaceTrainConfig, train
 
     cfg = PlaceTrainConfig(out=str(tmp_path / "a"), toy=True, steps=20, threads=1)
     train(cfg)
@@ -358,7 +358,7 @@ def test_place_training_resumes_to_the_same_weights(tmp_path, monkeypatch):
 def test_keypoint_training_resumes_to_the_same_weights(tmp_path, monkeypatch):
     """The toy recipe killed in stage 1 (after step 30 of 60) and in stage 3 (after step 10 of 40), each resumed
     from its ``last.pt``: the weights and loss history of the uninterrupted run."""
-    from vslam.features.train_keypoints import KeypointTrainConfig, train
+    from vslam.train.keypoints import KeypointTrainConfig, train
 
     cfg = KeypointTrainConfig(out=str(tmp_path / "a"), toy=True, threads=1)
     full = train(cfg)

@@ -2,20 +2,30 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime as _dt
 import json
 import logging
 from pathlib import Path
-from typing import Any
-
+from typing import Any, Iterator
 
 from vslam.bench import batch
 from vslam.bench.batch import Job, ab_jobs, ab_result, batch_row, grid_sets
 from vslam.bench.checks import git_commit
 from vslam.bench.jobs import aggregate, machine_info
 from vslam.bench.render import render_markdown, write_readme_table
-from vslam.bench.suite import SIDECAR_VERSION, SINGLE_RUN_KINDS, BenchRow, BenchSuite, entries_by_name, json_safe, load_sidecar, load_suite, sidecar_path
+from vslam.bench.suite import (
+    SIDECAR_VERSION,
+    SINGLE_RUN_KINDS,
+    BenchRow,
+    BenchSuite,
+    entries_by_name,
+    json_safe,
+    load_sidecar,
+    load_suite,
+    sidecar_path,
+)
 from vslam.config import deep_merge, parse_overrides
 from vslam.errors import ConfigError
 from vslam.progress import Progress
@@ -50,6 +60,7 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
     now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     machine = machine_info()
     commit = {"commit": git_commit(root)}  # the code the rows are measured with (-dirty: with uncommitted changes)
+    fresh: dict[str, dict[str, Any]] = {}  # the rows this run measures
     plan: list[tuple[BenchRow, list[Job]]] = []
     ab_labels: dict[str, dict[str, Any]] = {}
     for row in rows:
@@ -64,7 +75,8 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
             over = deep_merge(over, {"dataset": {"kind": kind, "path": str(path)}})
         if row.kind == "batch":  # runs its own serial / pool / Ray passes
             result = batch_row(cfg, over, row.grid, row.workers, str(jobs_dir / row.name))
-            kept[row.name] = {"result": json_safe(result), "measured": now, "repeat": 1, "machine": machine, **commit}
+            kept[row.name] = fresh[row.name] = {"result": json_safe(result), "measured": now, "repeat": 1,
+                                                "machine": machine, **commit}
         elif row.kind == "fusion":  # one seeded, deterministic run: repeating it only costs time
             plan.append((row, [Job("fusion", row.experiment, over, str(jobs_dir / row.name))]))
         elif row.kind == "ab":  # A and B on every grid point, in the same pool as the other rows
@@ -81,25 +93,47 @@ def run_bench(suite_path: str | Path, output: Path, repeat: int = 1, only: list[
         if "skipped" in result and row.name in kept:  # e.g. a GPU row on a machine without one
             log.info("%s: %s; its earlier measurement stays", row.name, result["skipped"])
             continue
-        kept[row.name] = {"result": json_safe(result), "measured": now, "repeat": 1 if row.kind == "ab" else len(jobs),
-                          "machine": machine, **parallel, **commit}
-    dropped = sorted(set(kept) - names)
-    if dropped:
-        log.info("%s: rows no longer in the suite dropped: %s", side, ", ".join(dropped))
-    entries = [(r, kept[r.name]) for r in suite.rows if r.name in kept]
+        kept[row.name] = fresh[row.name] = {"result": json_safe(result), "measured": now,
+                                            "repeat": 1 if row.kind == "ab" else len(jobs), "machine": machine,
+                                            **parallel, **commit}
     side.parent.mkdir(parents=True, exist_ok=True)
-    side.write_text(json.dumps({"version": SIDECAR_VERSION, "suite": str(suite_path), "written": now, "machine": machine,
-                                "rows": {r.name: e for r, e in entries}}, indent=1, default=float) + "\n")
-    output.write_text(render_markdown(suite, entries, now, machine))
-    if readme is not None and not sweep:
-        write_readme_table(suite, entries_by_name(entries), readme)
+    with _locked(side):
+        if not sweep:  # another bench run may have written rows since this one started: theirs stay
+            kept = {**load_sidecar(side), **fresh}
+        dropped = sorted(set(kept) - names)
+        if dropped:
+            log.info("%s: rows no longer in the suite dropped: %s", side, ", ".join(dropped))
+        entries = [(r, kept[r.name]) for r in suite.rows if r.name in kept]
+        side.write_text(json.dumps({"version": SIDECAR_VERSION, "suite": str(suite_path), "written": now,
+                                    "machine": machine, "rows": {r.name: e for r, e in entries}},
+                                   indent=1, default=float) + "\n")
+        output.write_text(render_markdown(suite, entries, now, machine))
+        if readme is not None and not sweep:
+            write_readme_table(suite, entries_by_name(entries), readme)
     return output
+
+
+@contextlib.contextmanager
+def _locked(side: Path) -> Iterator[None]:
+    """Serialise the read-merge-write of the sidecar between bench runs of one checkout (an advisory lock on
+    ``BENCHMARKS.json.lock``; none where ``fcntl`` is missing)."""
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    with open(side.with_name(side.name + ".lock"), "w") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
 
 def _composited(spec: dict[str, Any], jobs_dir: Path) -> tuple[str, Path]:
     """(dataset kind, folder) of the make-dynamic sequence a row names, written on first use (seeded: the same
     spec, the same frames)."""
+    from vslam.data.composite import make_dynamic, walker_config
     from vslam.data.kitti import is_kitti_layout
-    from vslam.dynamic.composite import make_dynamic, walker_config
     from vslam.paths import data_root
 
     unknown = set(spec) - {"data", "people", "seed", "coco"}

@@ -47,7 +47,7 @@ def _add_make_dynamic(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_make_dynamic(args: argparse.Namespace) -> int:
-    from vslam.dynamic.composite import make_dynamic, walker_config
+    from vslam.data.composite import make_dynamic, walker_config
     from vslam.paths import data_root
 
     def find(p: str) -> Path:
@@ -78,10 +78,10 @@ def _add_eval_detector(sub: argparse._SubParsersAction) -> None:
 def cmd_eval_detector(args: argparse.Namespace) -> int:
     import json
 
-    from vslam.dynamic.datasets import Split, load_records
-    from vslam.dynamic.eval_detector import build_detector, evaluate, format_report, predict
+    from vslam.eval.detector import build_detector, evaluate, format_report, predict
     from vslam.paths import data_root
     from vslam.progress import progress_bar
+    from vslam.train.photos import Split, load_records
 
     data = Path(args.data)
     if not data.exists() and not data.is_absolute() and (data_root() / data).exists():
@@ -115,8 +115,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
     import json
 
     from vslam.dynamic.config import DynamicConfig
-    from vslam.dynamic.detect import coco_results, image_files
-    from vslam.dynamic.eval_detector import build_detector
+    from vslam.eval.detect import coco_results, image_files
+    from vslam.eval.detector import build_detector
     from vslam.progress import progress_bar
 
     threshold = checked_threshold(args.threshold, DynamicConfig().score_threshold)

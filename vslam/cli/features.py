@@ -1,4 +1,4 @@
-"""``vslam eval-features``: the feature benchmark (``features.evaluate``) from the command line."""
+"""``vslam eval-features``: the feature benchmark (``eval.keypoints``) from the command line."""
 
 from __future__ import annotations
 
@@ -30,8 +30,9 @@ def add_quantize_cli(quantize_sub: argparse._SubParsersAction) -> None:
 def _cmd_quantize(args: argparse.Namespace) -> int:
     import torch
 
-    from vslam.features.convpoint import calibrate_convpoint, default_weights
+    from vslam.features.convpoint import default_weights
     from vslam.paths import data_root
+    from vslam.train.keypoints import calibrate_convpoint
 
     torch.set_num_threads(2)
     out = calibrate_convpoint(args.weights or default_weights(), data_root(), args.per_source)
@@ -42,8 +43,8 @@ def _cmd_quantize(args: argparse.Namespace) -> int:
 def _cmd(args: argparse.Namespace) -> int:
     import torch
 
+    from vslam.eval.keypoints import FeatureBenchConfig, format_table, run_feature_bench
     from vslam.features.convpoint import default_weights
-    from vslam.features.evaluate import FeatureBenchConfig, format_table, run_feature_bench
     from vslam.paths import data_root
     from vslam.progress import progress_bar
 

@@ -72,7 +72,7 @@ def _add_detector(train_sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_train_detector(args: argparse.Namespace) -> int:
-    from vslam.dynamic.train import TrainConfig, train
+    from vslam.train.detector import TrainConfig, train
 
     metrics = run_trainer(args, TrainConfig, train, "it")
     if metrics:  # under torchrun only rank 0 evaluates
@@ -99,7 +99,7 @@ def _add_place(train_sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_train_place(args: argparse.Namespace) -> int:
-    from vslam.loop.train_place import PlaceTrainConfig, train
+    from vslam.train.place import PlaceTrainConfig, train
 
     metrics = run_trainer(args, PlaceTrainConfig, train, "step")
     if metrics:  # under torchrun only rank 0 evaluates
@@ -113,7 +113,7 @@ def _add_keypoints(train_sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_train_keypoints(args: argparse.Namespace) -> int:
-    from vslam.features.train_keypoints import KeypointTrainConfig, train
+    from vslam.train.keypoints import KeypointTrainConfig, train
 
     metrics = run_trainer(args, KeypointTrainConfig, train, "step")
     if metrics:
@@ -128,7 +128,7 @@ def _add_yolox_masks(train_sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_train_yolox_masks(args: argparse.Namespace) -> int:
-    from vslam.dynamic.train_yolox_masks import MaskTrainConfig, train
+    from vslam.train.yolox_masks import MaskTrainConfig, train
 
     metrics = run_trainer(args, MaskTrainConfig, train, "it")
     print(json.dumps(metrics, indent=2))
@@ -141,7 +141,7 @@ def _add_yolox(train_sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_train_yolox(args: argparse.Namespace) -> int:
-    from vslam.dynamic.yolox_train import YoloxTrainConfig, train
+    from vslam.train.yolox import YoloxTrainConfig, train
 
     metrics = run_trainer(args, YoloxTrainConfig, train, "it")
     print(json.dumps(metrics, indent=2))

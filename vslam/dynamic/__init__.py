@@ -1,5 +1,5 @@
 """Dynamic-object filtering: masks / boxes of moving objects and a geometric motion check decide which
-keypoints reach tracking and mapping; the attention detector and its training live beside them.
+keypoints reach tracking and mapping. The detector's training is in ``vslam.train``, its evaluation in ``vslam.eval``.
 
 Names are resolved lazily (PEP 562) so that ``vslam.dynamic.detector`` / ``model`` load with torch, numpy and
 cv2 alone, without the SLAM stack (yaml, scipy, gtsam, pycolmap).

@@ -103,33 +103,6 @@ def int8_convpoint(net: ConvPointNet, qparams: dict[str, float]) -> ConvPointInt
     return ConvPointInt8(core, net.cfg).eval()
 
 
-def calibration_inputs(root: Path, per_source: int) -> list[torch.Tensor]:
-    """Standardised full-size training images (never the held-out ones), ``per_source`` from each source."""
-    from vslam.features.keypoint_data import KeypointSplits, image_files
-
-    out = []
-    for fs in image_files(KeypointSplits(), root, held_out=False).values():
-        for i in np.unique(np.linspace(0, len(fs) - 1, min(per_source, len(fs))).round().astype(int)) if fs else []:
-            im = cv2.imread(str(fs[i]), cv2.IMREAD_GRAYSCALE)
-            if im is not None:
-                out.append(standardize(batch_tensor([im])[0]))
-    return out
-
-
-def calibrate_convpoint(weights: str | Path, root: Path, per_source: int = 8) -> Path:
-    """Activation ranges of the int8 ConvPoint from training images -> ``<weights>.int8.json``."""
-    from vslam.errors import DatasetError
-    from vslam.quantize import calibrate, save_qparams
-
-    inputs = calibration_inputs(root, per_source)
-    if not inputs:
-        raise DatasetError(root, "no training images to calibrate on (COCO128 / TUM / KITTI / EuRoC subsets; set VSLAM_DATA)")
-    qparams = calibrate(_Core(load_convpoint(weights)).eval(), inputs, INT8_FLOAT_MODULES)
-    meta = {"images": len(inputs), "per_source": per_source, "split": "training images (features.train_keypoints)",
-            "float_modules": list(INT8_FLOAT_MODULES), "torch": torch.__version__}
-    return save_qparams(weights, qparams, meta)
-
-
 def heatmap(logits: torch.Tensor) -> torch.Tensor:
     """(B,65,Hc,Wc) cell logits -> (B,H,W) keypoint probability per pixel (the dustbin dropped)."""
     return F.pixel_shuffle(logits.softmax(dim=1)[:, :64], 8)[:, 0]

@@ -6,7 +6,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-
 from vslam.bench.suite import BenchRow
 from vslam.bench.tables import report_tables
 from vslam.childproc import peak_rss_mb
@@ -15,8 +14,8 @@ from vslam.errors import ConfigError
 
 def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
     """Dynamic-object filtering: the attention ablation (``set``: weights=[files], all trained with one recipe;
-    ``dynamic.evaluate``)."""
-    from vslam.dynamic.evaluate import evaluate_detectors
+    ``eval.ablation``)."""
+    from vslam.eval.ablation import evaluate_detectors
 
     t0 = time.perf_counter()
     weights = [str(w) for w in overrides.get("weights", ())]
@@ -28,7 +27,7 @@ def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str
 
 def table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     """Dynamic-object filtering: detectors on the held-out sets (the attention ablation: one recipe, one seed)."""
-    from vslam.dynamic.evaluate import format_table
+    from vslam.eval.ablation import format_table
 
     return report_tables(rows, "## Dynamic-object detector (`{name}`)", format_table)
 
@@ -37,9 +36,9 @@ def job_eval(config: str | None, overrides: dict[str, Any], out_dir: str) -> dic
     """Detector data: ``vslam eval-detector`` over several labelled folders. ``set``: data=[folder:split, ...] (under
     $VSLAM_DATA), model (checkpoint; "" = the shipped one) or teacher=true (FastestDet), img_size, threads ->
     {"sets": {"<folder's first part>-<split>": the evaluator's report}}."""
-    from vslam.dynamic.eval_detector import build_detector, evaluate, predict
-    from vslam.dynamic.datasets import load_records
+    from vslam.eval.detector import build_detector, evaluate, predict
     from vslam.paths import data_root
+    from vslam.train.photos import load_records
 
     t0 = time.perf_counter()
     data = [str(d) for d in overrides.get("data", ())]
@@ -60,7 +59,7 @@ def job_eval(config: str | None, overrides: dict[str, Any], out_dir: str) -> dic
 
 def eval_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     """Detector data: a detector on the real validation splits (``vslam eval-detector``), one table per folder."""
-    from vslam.dynamic.eval_detector import format_report
+    from vslam.eval.detector import format_report
 
     def tables(r: dict[str, Any]) -> list[str]:
         out = [f"{r['model']}, recall / precision / mask IoU at score {r['threshold']:g}"]

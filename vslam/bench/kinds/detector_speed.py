@@ -26,7 +26,7 @@ def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str
     "detections", "masks"}} keyed by the file's stem, "frames", "threads"}."""
     import torch
 
-    from vslam.dynamic.composite import MakeDynamicConfig, composited_frames
+    from vslam.data.composite import MakeDynamicConfig, composited_frames
     from vslam.dynamic.config import DynamicConfig
     from vslam.dynamic.detector import load_detector
     from vslam.paths import data_root
@@ -39,7 +39,7 @@ def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str
     if overrides.get("photos"):  # labelled photos (folder:split under $VSLAM_DATA), each resized to 640x480
         import cv2
 
-        from vslam.dynamic.datasets import load_records
+        from vslam.train.photos import load_records
 
         folder, _, split = str(overrides["photos"]).partition(":")
         _, records = load_records(data_root() / folder, split or "val")  # type: ignore[arg-type]

@@ -1,5 +1,5 @@
 """Kind ``extraction``: the learned presets' keypoint extraction against ORB in the same run, step by step, and
-the guided matcher per call (``features.extraction_speed``)."""
+the guided matcher per call (``eval.extraction_speed``)."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str
 
     from vslam.config import load_config
     from vslam.data.registry import open_sequence
-    from vslam.features.extraction_speed import SpeedSet, extraction_speed
+    from vslam.eval.extraction_speed import SpeedSet, extraction_speed
     from vslam.paths import data_root
     from vslam.pipeline.config import PipelineConfig
 
@@ -53,6 +53,6 @@ def _detector_step() -> tuple:
 
 def table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     """Per row: ms per frame and x ORB of each extractor, ALIKE's steps and layers, guided matching per call."""
-    from vslam.features.extraction_speed import format_table
+    from vslam.eval.extraction_speed import format_table
 
     return report_tables(rows, "## Keypoint extraction speed, learned presets vs ORB (`{name}`)", format_table)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import time
 from typing import Any
 
-
 from vslam.bench.suite import BenchRow
 from vslam.bench.tables import report_tables
 from vslam.childproc import peak_rss_mb
@@ -13,11 +12,11 @@ from vslam.childproc import peak_rss_mb
 
 def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
     """Learned keypoints: ConvPoint vs ORB vs SIFT on the same held-out pairs (``set``: keypoints, pairs, images, seed,
-    weights=<file>; ``features.evaluate``)."""
+    weights=<file>; ``eval.keypoints``)."""
     import torch
 
+    from vslam.eval.keypoints import FeatureBenchConfig, run_feature_bench
     from vslam.features.convpoint import default_weights
-    from vslam.features.evaluate import FeatureBenchConfig, run_feature_bench
     from vslam.paths import data_root
 
     torch.set_num_threads(2)
@@ -30,17 +29,17 @@ def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str
 
 def table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     """Learned keypoints: the homography benchmark and epipolar inliers, ConvPoint vs ORB vs SIFT in one run."""
-    from vslam.features.evaluate import format_table
+    from vslam.eval.keypoints import format_table
 
     return report_tables(rows, "## Keypoints: ConvPoint vs ORB vs SIFT (`{name}`)", format_table)
 
 
 def job_pose(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
     """Two-view relative pose AUC of keypoint methods on real pairs with ground truth (``set``: methods=[names],
-    keypoints, pairs, threads; ``features.pose_auc``)."""
+    keypoints, pairs, threads; ``eval.pose_auc``)."""
     import torch
 
-    from vslam.features.pose_auc import PoseBenchConfig, pose_benchmark, standard_methods
+    from vslam.eval.pose_auc import PoseBenchConfig, pose_benchmark, standard_methods
     from vslam.paths import data_root
 
     threads = int(overrides.get("threads", 2))
@@ -54,6 +53,6 @@ def job_pose(config: str | None, overrides: dict[str, Any], out_dir: str) -> dic
 
 def pose_table(rows: list[tuple[BenchRow, dict[str, Any]]]) -> list[str]:
     """Two-view pose AUC at 5/10/20 degrees per pair set and extraction ms per frame, methods of one run."""
-    from vslam.features.pose_auc import format_table
+    from vslam.eval.pose_auc import format_table
 
     return report_tables(rows, "## Keypoints: two-view pose AUC (`{name}`)", format_table)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import time
 from typing import Any
 
-
 from vslam.bench.suite import BenchRow
 from vslam.bench.tables import md_failed_row, md_section
 from vslam.childproc import peak_rss_mb
@@ -14,8 +13,8 @@ from vslam.childproc import peak_rss_mb
 def job(config: str | None, overrides: dict[str, Any], out_dir: str) -> dict[str, Any]:
     """Place recognition: recall@1/5/10 of the place descriptors (``set``: descriptors=[bow, vladnet], weights=<file>,
     seed=<held-out synthetic route>, tum=<folder under $VSLAM_DATA>) and the keyframe database's cost at 10k."""
+    from vslam.eval.place import bow_describer, database_costs, evaluate_held_out, held_out_sets, vladnet_describer
     from vslam.loop.descriptor import default_vladnet_path
-    from vslam.loop.retrieval import bow_describer, database_costs, evaluate_held_out, held_out_sets, vladnet_describer
     from vslam.paths import data_root
 
     t0 = time.perf_counter()
