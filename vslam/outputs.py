@@ -17,6 +17,8 @@ import shutil
 from pathlib import Path
 from typing import IO, Iterator
 
+import numpy as np
+
 from vslam.errors import VslamError
 
 log = logging.getLogger(__name__)
@@ -112,3 +114,15 @@ def describe_failure(out: Path, e: OSError) -> str:
         have = []
     held = f"; {out} holds {', '.join(have)} (files not listed were not written)" if have else ""
     return f"{what}{e.strerror or e}{held}"
+
+
+def write_map_ply(path: Path, xyz: np.ndarray) -> Path:
+    """(N,3) world points -> binary PLY point cloud (x, y, z doubles), the layout open3d writes. Written here, not
+    by open3d: importing it for this costs resident memory at the end of every run (docs/speed.md)."""
+    xyz = np.ascontiguousarray(xyz, dtype="<f8").reshape(-1, 3)
+    head = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(xyz)}\nproperty double x\n"
+            "property double y\nproperty double z\nend_header\n")
+    with atomic_open(path, "wb") as f:
+        f.write(head.encode("ascii"))
+        f.write(xyz.tobytes())
+    return path

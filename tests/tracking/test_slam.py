@@ -11,7 +11,7 @@ from vslam.eval import EvalConfig, evaluate
 from vslam.pipeline import Pipeline, PipelineConfig
 from vslam.runtime import RuntimeConfig
 from vslam.tracking.initializer import InitConfig
-from vslam.tracking.slam import SlamConfig, SlamTracker, write_map_ply
+from vslam.tracking.slam import SlamConfig, SlamTracker
 
 SMALL = dict(width=320, height=240, fx=262.5, fy=262.5, n_movers=0)
 
@@ -46,17 +46,6 @@ def test_rgbd_pipeline_accuracy_keyframes_and_map(tmp_path):
     assert len(pcd.points) > 500
     kf = np.loadtxt(res.paths["keyframes"])
     assert kf.ndim == 2 and kf.shape[1] == 8 and len(kf) >= 2
-
-
-def test_map_ply_reads_back_exactly(tmp_path):
-    """map.ply is written without open3d (its import is ~160 MB resident at the end of a run); open3d still reads
-    it, point for point."""
-    import open3d as o3d
-
-    xyz = np.random.default_rng(0).normal(size=(100, 3)) * 50
-    path = write_map_ply(tmp_path / "map.ply", xyz)
-    np.testing.assert_array_equal(np.asarray(o3d.io.read_point_cloud(str(path)).points), xyz)
-    assert b"element vertex 0\n" in write_map_ply(tmp_path / "empty.ply", np.zeros((0, 3))).read_bytes()
 
 
 def test_stereo_accuracy():

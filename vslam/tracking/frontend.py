@@ -10,12 +10,13 @@ from typing import Any
 
 import numpy as np
 
+from vslam.backend.ba import StereoCamera
 from vslam.data.types import Calibration, Frame, SensorKind
 from vslam.dynamic.masking import Instances
 from vslam.features import Features
 from vslam.features.depth import depth_rgbd, depth_stereo
 from vslam.features.lines import LineFeatures
-from vslam.features.stereo import depth_stereo_rectified
+from vslam.features.stereo import depth_stereo_rectified, is_rectified
 
 
 @dataclass
@@ -45,6 +46,30 @@ class FrameView:
     kept: np.ndarray | None = None
     point_ids: np.ndarray | None = None
     moving: np.ndarray | None = None
+
+
+def sensor_rig(calib: Calibration, sensor: SensorKind, cfg: Any) -> tuple[float, bool, StereoCamera]:
+    """(baseline, rectified, the camera of BA's stereo factors) of a rig: a stereo pair's baseline, RGB-D's virtual
+    one (``backend.rgbd_virtual_baseline``: depth enters BA as a disparity), 0 for monocular. ``cfg``: a
+    ``SlamConfig``."""
+    if sensor == "stereo":
+        if calib.cam1 is None or calib.baseline is None:
+            raise ValueError("stereo SLAM needs cam1 and its extrinsics in the calibration")
+        baseline = float(calib.baseline)
+    elif sensor == "rgbd":
+        baseline = cfg.backend.rgbd_virtual_baseline
+    else:
+        baseline = 0.0
+    # the disparity's own noise where it is measured apart from the keypoint: a depth sensor, or the sub-pixel
+    # stereo refinement of a rectified rig (``vslam.features.stereo``)
+    rectified = sensor == "stereo" and cfg.tracking.stereo_refine and is_rectified(calib)
+    disparity_sigma = 0.0
+    if sensor == "rgbd":
+        disparity_sigma = cfg.backend.rgbd_disparity_sigma
+    elif rectified:
+        disparity_sigma = cfg.backend.stereo_disparity_sigma
+    cam = calib.cam0
+    return baseline, rectified, StereoCamera(cam.fx, cam.fy, cam.cx, cam.cy, baseline, disparity_sigma)
 
 
 class FrontEndMaker:

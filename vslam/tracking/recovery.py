@@ -56,6 +56,37 @@ class MapRecovery:
             res = self._relocalise_archived(frame, feats, ur) or res
         return res
 
+    def _without_map(self, frame: Frame, feats: Features, depth: np.ndarray, ur: np.ndarray,
+                     est: FrameEstimate) -> None:
+        """A frame while there is no current map: the first map or the next one starts here ("new_map"), or a
+        monocular camera waiting for its two-view initialisation is relocalised in a map it left."""
+        est.tracked = self._initialize(frame, feats, depth, ur, self._restart)
+        for s in self.stages:
+            s.drop(self, est.tracked, None, feats, depth, ur)
+        est.status = "tracked" if est.tracked else "uninitialised"
+        if self._restart is not None:
+            # between two maps: no pose was measured ("lost", the last one held), or the new map starts here
+            est.status = "new_map" if est.tracked else "lost"
+            if est.tracked:
+                self._restart = None
+                est.pose_cov = np.zeros((6, 6))
+                if self.atlas.maps:  # type: ignore[union-attr]
+                    self._try_merge(self.map.keyframes[self.ref_kf], frame.image)
+            else:  # monocular, no new map yet: the camera may be back in a map it left
+                res = self._relocalise_archived(frame, feats, ur)
+                if res is not None:
+                    est.tracked, est.status, est.pose_cov = True, res.method, res.cov
+                    est.n_matches, est.n_inliers = res.n_matches, res.n_inliers
+        if est.status == "relocalised":
+            pass  # an archived map continues: its frames were localised when it was built
+        elif self.mono_init is not None and self.cfg.backfill and not self.cfg.load_map:  # saved keyframes are not this run's frames
+            if est.tracked:
+                est.backfill = self._backfill()
+            else:  # the initialiser retries for max_tries frames per reference: older frames share little
+                self._pre_init = self._pre_init[-self.mono_init.max_tries:] + [(frame.index, feats)]
+        if est.tracked and self.mono_init is None:
+            est.pose_cov = np.zeros((6, 6))  # the first frame defines the world frame: exact by definition
+
     def _lost(self, frame: Frame, feats: Features, depth: np.ndarray, ur: np.ndarray, T_pred: np.ndarray,
               est: FrameEstimate) -> None:
         """A frame no recovery step measured: predicted (motion model) at first; once lost for

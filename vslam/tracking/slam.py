@@ -17,11 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from vslam.backend.ba import StereoCamera
 from vslam.data.types import Calibration, Frame, SensorKind
 from vslam.features import Features, make_extractor
 from vslam.features.depth import stereo_ur
-from vslam.features.stereo import is_rectified
 from vslam.geometry.se3 import inv_T
 from vslam.mapping.local_mapping import LocalMapper
 from vslam.mapping.map import Map
@@ -30,7 +28,7 @@ from vslam.tracking.atlas import Atlas
 from vslam.tracking.baseline import FrameEstimate
 from vslam.tracking.config import SlamConfig
 from vslam.tracking.frame_log import FrameLog
-from vslam.tracking.frontend import FrameView, FrontEnd, FrontEndMaker
+from vslam.tracking.frontend import FrameView, FrontEnd, FrontEndMaker, sensor_rig
 from vslam.tracking.map_steps import MapSteps
 from vslam.tracking.mono_init import MonoInitializer
 from vslam.tracking.recovery import MapRecovery
@@ -42,7 +40,7 @@ log = logging.getLogger(__name__)
 
 # FrameView and FrontEnd live in vslam.tracking.frontend; named here too because viewers and the front-end
 # process meet them as what SlamTracker gives
-__all__ = ["FrameView", "FrontEnd", "SlamConfig", "SlamTracker", "write_map_ply"]
+__all__ = ["FrameView", "FrontEnd", "SlamConfig", "SlamTracker"]
 
 
 class SlamTracker(MapRecovery, MapSteps):
@@ -55,24 +53,7 @@ class SlamTracker(MapRecovery, MapSteps):
         front end uses the machine (``RuntimeConfig.lines_beside_networks``)."""
         self.calib, self.sensor, self.cfg, self.runtime = calibration, sensor, cfg, runtime
         self.cam = calibration.cam0
-        if sensor == "stereo":
-            if calibration.cam1 is None or calibration.baseline is None:
-                raise ValueError("stereo SLAM needs cam1 and its extrinsics in the calibration")
-            baseline = float(calibration.baseline)
-        elif sensor == "rgbd":
-            baseline = cfg.backend.rgbd_virtual_baseline
-        else:
-            baseline = 0.0
-        self.baseline = baseline
-        # the disparity's own noise where it is measured apart from the keypoint: a depth sensor, or the
-        # sub-pixel stereo refinement of a rectified rig (``vslam.features.stereo``)
-        self.rectified = sensor == "stereo" and cfg.tracking.stereo_refine and is_rectified(calibration)
-        disparity_sigma = 0.0
-        if sensor == "rgbd":
-            disparity_sigma = cfg.backend.rgbd_disparity_sigma
-        elif self.rectified:
-            disparity_sigma = cfg.backend.stereo_disparity_sigma
-        self.stereo_cam = StereoCamera(self.cam.fx, self.cam.fy, self.cam.cx, self.cam.cy, baseline, disparity_sigma)
+        self.baseline, self.rectified, self.stereo_cam = sensor_rig(calibration, sensor, cfg)
         self.extractor = make_extractor(cfg.features)
         if cfg.loop.enabled and cfg.loop.descriptor == "bow" and self.extractor.descriptor_kind != "binary":
             from vslam.errors import ConfigError
@@ -188,32 +169,7 @@ class SlamTracker(MapRecovery, MapSteps):
         for s in self.stages:
             s.annotate(est)
         if self.ref_kf is None:
-            est.tracked = self._initialize(frame, feats, depth, ur, self._restart)
-            for s in self.stages:
-                s.drop(self, est.tracked, None, feats, depth, ur)
-            est.status = "tracked" if est.tracked else "uninitialised"
-            if self._restart is not None:
-                # between two maps: no pose was measured ("lost", the last one held), or the new map starts here
-                est.status = "new_map" if est.tracked else "lost"
-                if est.tracked:
-                    self._restart = None
-                    est.pose_cov = np.zeros((6, 6))
-                    if self.atlas.maps:  # type: ignore[union-attr]
-                        self._try_merge(self.map.keyframes[self.ref_kf], frame.image)
-                else:  # monocular, no new map yet: the camera may be back in a map it left
-                    res = self._relocalise_archived(frame, feats, ur)
-                    if res is not None:
-                        est.tracked, est.status, est.pose_cov = True, res.method, res.cov
-                        est.n_matches, est.n_inliers = res.n_matches, res.n_inliers
-            if est.status == "relocalised":
-                pass  # an archived map continues: its frames were localised when it was built
-            elif self.mono_init is not None and self.cfg.backfill and not self.cfg.load_map:  # saved keyframes are not this run's frames
-                if est.tracked:
-                    est.backfill = self._backfill()
-                else:  # the initialiser retries for max_tries frames per reference: older frames share little
-                    self._pre_init = self._pre_init[-self.mono_init.max_tries:] + [(frame.index, feats)]
-            if est.tracked and self.mono_init is None:
-                est.pose_cov = np.zeros((6, 6))  # the first frame defines the world frame: exact by definition
+            self._without_map(frame, feats, depth, ur, est)
             t3 = time.perf_counter()
         else:
             T_pred = self.T_world_cam @ self.velocity
@@ -307,6 +263,7 @@ class SlamTracker(MapRecovery, MapSteps):
         """Write ``keyframes.tum.txt`` (optimised keyframe poses) and ``map.ply`` (map points, world frame);
         with lines on also ``map_lines.ply`` (line set: two end points per map line)."""
         from vslam.data.trajectory import Trajectory, write_trajectory
+        from vslam.outputs import write_map_ply
 
         for s in self.stages:
             if hasattr(s, "close"):
@@ -337,17 +294,3 @@ class SlamTracker(MapRecovery, MapSteps):
 
 def _add_ms(a: dict[str, float], b: dict[str, float]) -> dict[str, float]:
     return {k: a.get(k, 0.0) + b.get(k, 0.0) for k in {**a, **b}}
-
-
-def write_map_ply(path: Path, xyz: np.ndarray) -> Path:
-    """(N,3) world points -> binary PLY point cloud (x, y, z doubles), the layout open3d writes. Written here, not
-    by open3d: importing it for this costs resident memory at the end of every run (docs/speed.md)."""
-    from vslam.outputs import atomic_open
-
-    xyz = np.ascontiguousarray(xyz, dtype="<f8").reshape(-1, 3)
-    head = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(xyz)}\nproperty double x\n"
-            "property double y\nproperty double z\nend_header\n")
-    with atomic_open(path, "wb") as f:
-        f.write(head.encode("ascii"))
-        f.write(xyz.tobytes())
-    return path
