@@ -23,8 +23,11 @@ from scipy.spatial import cKDTree
 from vslam.backend.ba import BackendConfig, StereoCamera
 from vslam.data.types import PinholeCamera
 from vslam.features.base import Features
+from vslam.features.matching import match_mutual
 from vslam.geometry.se3 import so3_angle_deg
 from vslam.loop.database import KeyframeDatabase
+from vslam.loop.node_match import CoarseNodes, match_in_nodes
+from vslam.loop.vocabulary import Vocabulary, default_vocabulary_path
 from vslam.mapping.map import Map
 from vslam.tracking.tracker import TrackingConfig, Tracker, TrackResult
 
@@ -63,6 +66,9 @@ class AtlasConfig:
         becomes the current one again and the frame continues it (the map it leaves is archived).
     relocalise_min_inliers: points the local-map round must keep to switch maps: more than tracking's 20, as
         a wrong switch puts the camera in another place.
+    match_nodes, match_probes: binary descriptors are matched to an archived map only within the same coarse
+        vocabulary node (``vslam.loop.node_match``; ORB-SLAM's SearchByBoW), each query keypoint looked for in its
+        ``match_probes`` nearest of ``match_nodes`` nodes; 0 nodes: every pair compared (about 4x the time).
     """
 
     enabled: bool = True
@@ -79,6 +85,8 @@ class AtlasConfig:
     min_lost_frames: int = 2
     relocalise: bool = True
     relocalise_min_inliers: int = 40
+    match_nodes: int = 16
+    match_probes: int = 2
 
 
 class Atlas:
@@ -96,6 +104,8 @@ class Atlas:
         self.switches = 0  # frames relocalised into an archived map, which then continued
         # (archived map id, T_old_new) of the last keyframes that found it in a row (``merge_consistency``)
         self.votes: list[tuple[int, np.ndarray]] = []
+        self._indexes: dict[int, _MapIndex] = {}  # archived map id -> its points for ``locate``
+        self._nodes: CoarseNodes | None = None  # built on the first query with binary descriptors
 
     def new_id(self) -> int:
         self.n_maps += 1
@@ -128,21 +138,73 @@ class Atlas:
                method: str = "merge", ratio: float = 0.8) -> tuple[int, int, TrackResult] | None:
         """The archived map a keyframe or frame (keypoints ``feats``, virtual right ``ur``, descriptor ``vec``) is
         seen in: (map id, candidate keyframe, its pose there), or None. ``min_inliers``: default
-        ``merge_min_inliers``; ``ratio``: of the descriptor matching (``Tracker.track_keyframe``)."""
+        ``merge_min_inliers``; ``ratio``: of the descriptor matching.
+
+        Per map, the ``merge_top_k`` best place candidates are verified together: the keypoints are matched once
+        against the map points the candidates see (each point once; binary descriptors within coarse vocabulary
+        nodes, ``match_nodes``), then PnP and the local-map round of the candidate that sees most of the PnP
+        inliers. Matching is most of the cost, and the candidates of one place share most of their points, so
+        one matching over their union costs about what two keyframes' cost apart (docs/tracking.md, "Never
+        lost")."""
         if vec is None or len(feats) < self.tracking.min_inliers:
             return None
         need = self.cfg.merge_min_inliers if min_inliers is None else min_inliers
-        tree = cKDTree(feats.uv)
+        probes = self._probes(feats)
+        tree = None
         for map_id in sorted(self.maps, reverse=True):  # the most recent map first
             db = self.dbs.get(map_id)
             if db is None or not len(db):
                 continue
-            tracker = Tracker(self.maps[map_id], self.cam, self.stereo_cam, self.tracking, self.backend)
-            for cand, _ in db.query(vec, self.cfg.merge_top_k, min_score=self.cfg.merge_min_score):
-                res = tracker.track_keyframe(feats, ur, cand, tree, method, ratio)
-                if res is not None and res.ok and res.n_inliers >= need:
-                    return map_id, cand, res
+            cands = [k for k, _ in db.query(vec, self.cfg.merge_top_k, min_score=self.cfg.merge_min_score)]
+            if not cands:
+                continue
+            index = self._index(map_id)
+            rows = index.rows(cands)
+            if probes is None:
+                pair = match_mutual(index.desc[rows], feats.desc, ratio=ratio, max_dist=self.tracking.max_hamming)
+            else:
+                pair = match_in_nodes(index.desc[rows], index.nodes(self._nodes)[rows], feats.desc, probes, ratio,
+                                      self.tracking.max_hamming)
+            if len(pair) < self.tracking.min_inliers:
+                continue
+            tracker = index.tracker
+            rows, kps = rows[pair[:, 0]], pair[:, 1]
+            T, inl = tracker.pnp(feats.uv[kps], index.xyz[rows])
+            if T is None:
+                continue
+            pids = index.ids[rows[inl]]
+            T_ref, inl2 = tracker.refine(T, pids, kps[inl], ur, feats, index.xyz[rows[inl]])
+            cand = index.best_candidate(cands, pids)
+            tree = cKDTree(feats.uv) if tree is None else tree
+            # as ``Tracker.track_keyframe``: the local-map round from the refined pose unless the refinement's
+            # depth residuals dropped too many matches, then from the RANSAC pose
+            T0 = T_ref if inl2.sum() >= self.tracking.min_inliers else T
+            res = tracker._finish_local(T0, feats, ur, cand, tree, method)
+            if res.ok and res.n_inliers >= need:
+                return map_id, cand, res
         return None
+
+    def _probes(self, feats: Features) -> np.ndarray | None:
+        """(N,t) coarse nodes each keypoint is looked for in (``match_nodes``), or None: every pair is compared
+        (learned float descriptors, or ``match_nodes`` 0). The nodes come from the BoW descriptor's vocabulary,
+        else the shipped one."""
+        if self.cfg.match_nodes <= 0 or feats.desc.dtype != np.uint8:
+            return None
+        if self._nodes is None:
+            vocab = getattr(self.descriptor, "vocab", None)
+            self._nodes = CoarseNodes(vocab if vocab is not None else Vocabulary.load(default_vocabulary_path()),
+                                      self.cfg.match_nodes)
+        return self._nodes.nodes(feats.desc, self.cfg.match_probes)
+
+    def _index(self, map_id: int) -> _MapIndex:
+        """The matching data of archived map ``map_id``, built on its first query (an archived map does not
+        change until it is taken up again)."""
+        m = self.maps[map_id]
+        index = self._indexes.get(map_id)
+        if index is None or index.map is not m or index.revision != m.revision:
+            index = _MapIndex(m, Tracker(m, self.cam, self.stereo_cam, self.tracking, self.backend))
+            self._indexes[map_id] = index
+        return index
 
     @staticmethod
     def old_from_new(T_new: np.ndarray, T_old: np.ndarray, scale: float = 1.0) -> np.ndarray:
@@ -201,4 +263,45 @@ class Atlas:
 
     def take(self, map_id: int) -> tuple[Map, KeyframeDatabase | None]:
         """Remove an archived map (it becomes the current one again, with the current map merged into it)."""
+        self._indexes.pop(map_id, None)
         return self.maps.pop(map_id), self.dbs.pop(map_id, None)
+
+
+class _MapIndex:
+    """An archived map's points as arrays for ``Atlas.locate``: ids (P,) sorted, desc (P,D) representative
+    descriptors, xyz (P,3) world positions; per keyframe the rows of the points it sees (built on first use);
+    the map's ``Tracker`` (its local-map cache stays valid while the map is unchanged)."""
+
+    def __init__(self, m: Map, tracker: Tracker):
+        self.map, self.revision, self.tracker = m, m.revision, tracker
+        self.ids = np.array(sorted(m.points), np.int64)
+        self.desc = m.descriptors(self.ids)
+        self.xyz = m.points_xyz(self.ids)
+        self._kf_rows: dict[int, np.ndarray] = {}
+        self._nodes: np.ndarray | None = None
+
+    def nodes(self, coarse: CoarseNodes) -> np.ndarray:
+        """(P,) the nearest coarse node of each point's descriptor."""
+        if self._nodes is None:
+            self._nodes = coarse.nodes(self.desc)[:, 0]
+        return self._nodes
+
+    def kf_rows(self, kf_id: int) -> np.ndarray:
+        rows = self._kf_rows.get(kf_id)
+        if rows is None:
+            pids = self.map.keyframes[kf_id].point_ids
+            pids = np.unique(pids[pids >= 0])
+            rows = np.searchsorted(self.ids, pids)
+            rows = rows[(rows < len(self.ids)) & (self.ids[np.minimum(rows, len(self.ids) - 1)] == pids)]
+            self._kf_rows[kf_id] = rows
+        return rows
+
+    def rows(self, kf_ids: list[int]) -> np.ndarray:
+        """Rows of the points any of ``kf_ids`` sees, each once, ascending."""
+        return np.unique(np.concatenate([self.kf_rows(k) for k in kf_ids]))
+
+    def best_candidate(self, kf_ids: list[int], pids: np.ndarray) -> int:
+        """The keyframe of ``kf_ids`` (best place score first) that sees most of the points ``pids``; ties: the
+        better score."""
+        hits = [int(np.isin(self.ids[self.kf_rows(k)], pids, assume_unique=True).sum()) for k in kf_ids]
+        return kf_ids[int(np.argmax(hits))]
