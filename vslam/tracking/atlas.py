@@ -86,7 +86,7 @@ class AtlasConfig:
     relocalise: bool = True
     relocalise_min_inliers: int = 40
     match_nodes: int = 16
-    match_probes: int = 2
+    match_probes: int = 3
 
 
 class Atlas:
