@@ -76,19 +76,25 @@ def match_in_nodes(d1: np.ndarray, n1: np.ndarray, d2: np.ndarray, p2: np.ndarra
         if len(rows) == 0 or len(cols) == 0:
             continue
         ar, bt = np.take(a, rows, axis=0), np.ascontiguousarray(np.take(b, cols, axis=0).T)
-        D = np.zeros((len(rows), len(cols)), np.int32)
+        x = np.empty((len(rows), len(cols)), np.uint64)
+        bits = np.empty((len(rows), len(cols)), np.uint8)
+        D = np.zeros((len(rows), len(cols)), np.uint16)
         for w in range(a.shape[1]):  # a word at a time: (rows, cols) popcounts summed in place
-            D += np.bitwise_count(ar[:, w, None] ^ bt[w])
-        key = D * np.int32(n_cols + 1)
+            np.bitwise_xor(ar[:, w, None], bt[w], out=x)
+            np.bitwise_count(x, out=bits)
+            D += bits
+        key = D.astype(np.int32)
+        key *= np.int32(n_cols + 1)
         key += cols
-        if len(cols) > 1:
-            two = np.partition(key, 1, axis=1)
-            best[rows], second[rows] = two[:, 0], two[:, 1]
-        else:
-            best[rows] = key[:, 0]
-        D *= np.int32(n_rows + 1)
-        D += rows[:, None]
-        col_best[cols] = np.minimum(col_best[cols], D.min(axis=0))
+        r = np.arange(len(rows))
+        j = key.argmin(axis=1)
+        best[rows] = key[r, j]
+        key[r, j] = big
+        second[rows] = key.min(axis=1)  # big: the row had one candidate
+        key = D.astype(np.int32)
+        key *= np.int32(n_rows + 1)
+        key += rows[:, None]
+        col_best[cols] = np.minimum(col_best[cols], key.min(axis=0))
     has = np.flatnonzero(best != big)
     best_d, best_j = np.divmod(best[has].astype(np.int64), n_cols + 1)
     ok = (col_best[best_j] % (n_rows + 1) == has) & (best_d <= max_dist)
