@@ -7,9 +7,9 @@ is made here: the words grouped into ``K`` coarse nodes by the same k-majority t
 same nodes every run). Two views of one point are often tens of bits apart and then fall into different
 nodes, so each query descriptor is looked for in its ``probes`` nearest nodes, the other side in its nearest
 one: at K=16 and three probes a match is sought among ~1/5 of the pairs. Within a node the ratio test sees
-fewer distractors, which gives back part of what the nodes miss: on TUM teddy keyframe pairs 0.33-0.67 s apart
-the PnP after it kept a median 97-99 % of the inliers that matching every pair gave (docs/loop.md, "Matching
-within coarse nodes").
+fewer distractors, which gives back part of what the nodes miss: on TUM teddy keyframe-to-frame matchings
+0.33-0.67 s apart the PnP after it kept a median 97-100 % of the inliers that matching every pair gave
+(docs/loop.md, "Matching within coarse nodes").
 """
 
 from __future__ import annotations
