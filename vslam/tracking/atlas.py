@@ -144,8 +144,8 @@ class Atlas:
         against the map points the candidates see (each point once; binary descriptors within coarse vocabulary
         nodes, ``match_nodes``), then PnP and the local-map round of the candidate that sees most of the PnP
         inliers. Matching is most of the cost, and the candidates of one place share most of their points, so
-        one matching over their union costs about what two keyframes' cost apart (docs/tracking.md, "Never
-        lost")."""
+        one matching over their union costs what two or three keyframes' cost apart (docs/tracking.md, "The
+        archived-map query")."""
         if vec is None or len(feats) < self.tracking.min_inliers:
             return None
         need = self.cfg.merge_min_inliers if min_inliers is None else min_inliers
@@ -287,6 +287,7 @@ class _MapIndex:
         return self._nodes
 
     def kf_rows(self, kf_id: int) -> np.ndarray:
+        """Rows of the points keyframe ``kf_id`` sees (ascending)."""
         rows = self._kf_rows.get(kf_id)
         if rows is None:
             pids = self.map.keyframes[kf_id].point_ids
