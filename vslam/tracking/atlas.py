@@ -5,11 +5,12 @@ the tracker does not extrapolate for ever: once every recovery step has failed f
 current map is archived here and a new one starts (RGB-D / stereo: from the frame's own depth, at once;
 monocular: at the next successful two-view initialisation). Every new keyframe of the current map is then
 looked for in the archived maps by its place descriptor (bag of words over its ORB descriptors, or the loop
-closer's database when that is on); a candidate confirmed by descriptor matching + PnP against that map's
-points (``Tracker.track_keyframe``, the relocalisation step) gives the rigid transform between the two maps,
-and the current map is moved into the old one (``Map.absorb``): the seam's duplicate points are fused and a
-global BA re-fits the merged map, as after a loop (``SlamTracker._merge``). Monocular maps have a unit of their own each: the transform is a
-similarity, its scale the median depth ratio of the keypoints' points in the two maps (``Atlas.scale``).
+closer's database when that is on); candidates confirmed by descriptor matching + PnP + the local-map round
+against that map's points (``Atlas.locate``, also the relocalisation step) give the rigid transform between the
+two maps, and the current map is moved into the old one (``Map.absorb``): the seam's duplicate points are fused
+and a global BA re-fits the merged map, as after a loop (``MapRecovery._merge``). Monocular maps have a unit of
+their own each: the transform is a similarity, its scale the median depth ratio of the keypoints' points in the
+two maps (``Atlas.scale``).
 """
 
 from __future__ import annotations
