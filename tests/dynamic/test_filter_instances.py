@@ -96,7 +96,8 @@ def test_a_detection_without_a_trusted_mask_masks_its_box():
 
 def test_box_memory_unions_the_remembered_masks():
     """A person whose L moves 8 px right per frame, found at t = 0 and 0.1 s, missed at 0.2 s: with box_memory_s
-    0.15 s frame 1 masks both Ls (not the rest of the boxes), frame 2 the second L only."""
+    0.15 s frame 1 masks both Ls (not the rest of the boxes), frame 2 the second L only (every box held:
+    box_memory_min_hits 1)."""
 
     class Walk:
         def __init__(self):
@@ -111,7 +112,8 @@ def test_box_memory_unions_the_remembered_masks():
                               np.array(["person"], dtype=object), _l_mask(8 * k)[None])
 
     f = _feats()
-    cfg = DynamicConfig(enabled=True, source="detector", dilation_px=2, box_memory_s=0.15, box_track_s=0.0)
+    cfg = DynamicConfig(enabled=True, source="detector", dilation_px=2, box_memory_s=0.15, box_track_s=0.0,
+                        box_memory_min_hits=1)
     flt = DynamicFilter(cfg, CAM, detector=Walk())
     kept = [flt.keep(_frame(i, 0.1 * i), f) for i in range(3)]
     a, b = in_mask(f.raw, dilate(_l_mask(0), 2)), in_mask(f.raw, dilate(_l_mask(8), 2))
@@ -119,6 +121,36 @@ def test_box_memory_unions_the_remembered_masks():
     np.testing.assert_array_equal(kept[1], ~(a | b))
     np.testing.assert_array_equal(kept[2], ~b)
     assert (kept[1] & in_boxes(f.raw, np.array([[10.0, 8, 48, 40]]))).sum() > 30  # between and beside the Ls
+
+
+def test_box_memory_holds_only_objects_seen_twice():
+    """box_memory_min_hits 2: a detection of one frame only (a false box) is masked in its own frame and not
+    held after it; an object found in two frames is held when the detector then misses it."""
+
+    class Blink:
+        """A box at frames 0 (once, then gone) and, elsewhere, at frames 2 and 3; nothing from frame 4 on."""
+
+        def __init__(self):
+            self.n = 0
+
+        def detect(self, image):
+            k, self.n = self.n, self.n + 1
+            boxes = {0: [[2.0, 2, 20, 20]], 2: [[40.0, 20, 60, 44]], 3: [[41.0, 20, 61, 44]]}.get(k, [])
+            n = len(boxes)
+            return Detections(np.array(boxes).reshape(-1, 4), np.full(n, 0.9), np.zeros(n, np.int64),
+                              np.array(["person"] * n, dtype=object), None)
+
+    f = _feats()
+    cfg = DynamicConfig(enabled=True, source="detector", dilation_px=0, mask="box", box_memory_s=0.25,
+                        box_track_s=0.0, box_memory_min_hits=2)
+    flt = DynamicFilter(cfg, CAM, detector=Blink())
+    kept = [flt.keep(_frame(i, 0.1 * i), f) for i in range(5)]
+    once = in_boxes(f.raw, np.array([[2.0, 2, 20, 20]]))
+    twice = in_boxes(f.raw, np.array([[41.0, 20, 61, 44]]))
+    assert once.sum() > 5 and twice.sum() > 5
+    np.testing.assert_array_equal(kept[0], ~once)  # its own frame masks it
+    assert kept[1].all()  # seen once: not held
+    np.testing.assert_array_equal(kept[4], ~twice)  # seen at frames 2 and 3: held at 4, where it is missed
 
 
 def test_a_static_verdict_unmasks_the_instance():

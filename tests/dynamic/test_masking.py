@@ -203,10 +203,12 @@ class _Blink:
 
 
 def test_detector_boxes_are_remembered_for_box_memory_s():
-    """A person found at t = 0 and missed at t = 0.1 s is still masked then (box_memory_s = 0.15), not at 0.2 s."""
+    """A person found at t = 0 and missed at t = 0.1 s is still masked then (box_memory_s = 0.15), not at 0.2 s
+    (every detection held: box_memory_min_hits 1)."""
     uv = np.array([[10.0, 10.0], [40.0, 10.0]])
     f = Features(uv, uv, np.zeros((2, 32), np.uint8), np.zeros(2), np.zeros(2))
-    flt = DynamicFilter(DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.15, box_track_s=0.0),
+    flt = DynamicFilter(DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.15, box_track_s=0.0,
+                                      box_memory_min_hits=1),
                         CAM, detector=_Blink([0.0, 0, 20, 20]))
     kept = [flt.keep(Frame(i, t, np.zeros((48, 64), np.uint8)), f).tolist() for i, t in enumerate((0.0, 0.1, 0.2))]
     assert kept == [[False, True], [False, True], [True, True]]

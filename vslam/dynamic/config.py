@@ -82,6 +82,12 @@ class DynamicConfig:
     # one frame was found in one before; boxes move little in a fraction of a second). Chosen on a validation
     # composite (docs/dynamic.md, 'Measurements behind settings in the code')
     box_memory_s: float = 0.27
+    # the box memory holds only objects detected in at least this many frames of its window (the box overlapping,
+    # IoU >= 0.3, one of each earlier frame's boxes); a detection seen once is masked in its own frame only. 2
+    # keeps a one-frame false box over a large static object (YOLOX-nano's low-score person box on TUM's teddy
+    # bear) from blanking the scene for the whole window. 1 (every box held): 2 did not beat it on the validation
+    # composites with the shipped detector (docs/dynamic.md, 'Measurements behind settings in the code').
+    box_memory_min_hits: int = 1
     # detector boxes also grow by this fraction of their size on each side: a small model's box edges are off by
     # ~ a stride of its coarsest level, and a limb or a foot just outside the box leaks keypoints. Off: the
     # shipped detector boxes generously enough that growing cost accuracy on the validation composites
@@ -129,8 +135,9 @@ class DynamicConfig:
             raise ConfigError(f"slam.dynamic.box_grow must be in [0, 1], got {self.box_grow}")
         if self.detect_every < 1:
             raise ConfigError(f"slam.dynamic.detect_every must be >= 1, got {self.detect_every}")
-        if self.box_memory_s < 0:
-            raise ConfigError("slam.dynamic.box_memory_s must be >= 0")
+        if self.box_memory_s < 0 or self.box_memory_min_hits < 1:
+            raise ConfigError(f"slam.dynamic: box_memory_s must be >= 0 and box_memory_min_hits >= 1, got "
+                              f"{self.box_memory_s} and {self.box_memory_min_hits}")
         if self.box_track_s < 0 or self.box_track_min_matches < 1:
             raise ConfigError(f"slam.dynamic: box_track_s must be >= 0 and box_track_min_matches >= 1, got "
                               f"{self.box_track_s} and {self.box_track_min_matches}")

@@ -44,7 +44,8 @@ class DynamicFilter:
         if extra is None:
             extra = [self._load(p, "extra_weights") for p in cfg.extra_weights] if cfg.source == "detector" else []
         self.extra = list(extra)
-        self._recent: deque[tuple[float, Instances]] = deque()  # (timestamp, detections) of this and recent frames
+        # (timestamp, detections, those of them the box memory holds) of this and recent frames
+        self._recent: deque[tuple[float, Instances, Instances]] = deque()
         self._objects = Instances.from_boxes(np.zeros((0, 4)))  # this frame's detections
         self._static = np.zeros((0, 4))  # boxes of the last checked frame judged static
         self._movers: list[tuple[float, np.ndarray]] = []  # (time, box) of objects seen moving, followed by overlap
@@ -110,11 +111,17 @@ class DynamicFilter:
             if fresh is not None:  # else a frame between detections: the last detection's boxes hold
                 self._objects = fresh
             self._t = frame.timestamp
-            self._recent.append((frame.timestamp, self._objects))
-            while frame.timestamp - self._recent[0][0] > c.box_memory_s + 1e-6:
+            while self._recent and frame.timestamp - self._recent[0][0] > c.box_memory_s + 1e-6:
                 self._recent.popleft()
+            held = [kept for _, _, kept in self._recent]  # the window's objects, those confirmed when seen
+            if fresh is not None:
+                kept = self._confirmed(fresh, [seen.boxes for _, seen, _ in self._recent])
+                self._recent.append((frame.timestamp, fresh, kept))
+            else:  # the held detection is no new sighting (``detect_every``)
+                kept = self._recent[-1][2] if self._recent else self._objects
+                self._recent.append((frame.timestamp, Instances.from_boxes(np.zeros((0, 4))), kept))
             followed = Instances.from_boxes(self._follow(feats, frame.timestamp))
-            objs = Instances.concat([o for _, o in self._recent] + [followed])
+            objs = Instances.concat(held + [self._objects, followed])
             if len(self._static) and len(objs):  # a static verdict unmasks the instance, box or mask
                 objs = objs.subset(box_iou(objs.boxes, self._static).max(axis=1) < 0.5)
             whole = np.array([m is None for m in objs.masks], bool)
@@ -123,6 +130,18 @@ class DynamicFilter:
                 shape = frame.image.shape[:2]
                 self._region_mask = dilate(paint([m for m in objs.masks if m is not None], shape), c.dilation_px)
         return self._on_dynamic(feats.raw)
+
+    def _confirmed(self, objs: Instances, window: list[np.ndarray]) -> Instances:
+        """The detections of ``objs`` the box memory may hold: those seen in ``box_memory_min_hits`` frames of the
+        window counting this one (a box overlapping, IoU >= 0.3, one of each earlier frame's boxes)."""
+        need = self.cfg.box_memory_min_hits - 1
+        if need <= 0 or not len(objs):
+            return objs
+        hits = np.zeros(len(objs), np.int64)
+        for boxes in window:
+            if len(boxes):
+                hits += box_iou(objs.boxes, boxes).max(axis=1) >= 0.3
+        return objs.subset(hits >= need)
 
     def _follow(self, feats: Features, t: float) -> np.ndarray:
         """(K,4) boxes of objects the detector found within ``box_track_s`` but not in this frame, moved with them:
