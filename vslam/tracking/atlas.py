@@ -180,7 +180,7 @@ class Atlas:
             # as ``Tracker.track_keyframe``: the local-map round from the refined pose unless the refinement's
             # depth residuals dropped too many matches, then from the RANSAC pose
             T0 = T_ref if inl2.sum() >= self.tracking.min_inliers else T
-            res = tracker._finish_local(T0, feats, ur, cand, tree, method)
+            res = tracker.finish_local(T0, feats, ur, cand, tree, method)
             if res.ok and res.n_inliers >= need:
                 return map_id, cand, res
         return None

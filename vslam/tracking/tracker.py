@@ -206,8 +206,8 @@ class Tracker:
         ok = int(inl.sum()) >= self.cfg.min_inliers
         return TrackResult(T, ok, point_ids, n_matches, int(inl.sum()), method)
 
-    def _finish_local(self, T: np.ndarray, feats: Features, ur: np.ndarray, ref_kf: int, tree: cKDTree, method: str,
-                      local: LocalPoints | None = None) -> TrackResult:
+    def finish_local(self, T: np.ndarray, feats: Features, ur: np.ndarray, ref_kf: int, tree: cKDTree, method: str,
+                     local: LocalPoints | None = None) -> TrackResult:
         """Second round: the whole local map (``local``, else that of ``ref_kf``) from a good pose, tight radius,
         pose-only refinement."""
         if local is None:
@@ -231,7 +231,7 @@ class Tracker:
     def track_projection(self, feats: Features, ur: np.ndarray, T_pred: np.ndarray, ref_kf: int, radius: float, tree: cKDTree,
                          last_ids: np.ndarray | None = None, ratio: float = 0.8) -> TrackResult | None:
         """Motion-model round (``last_ids``: the previous frame's tracked points, else / if too few: the local
-        map) + LO-RANSAC PnP, then ``_finish_local``."""
+        map) + LO-RANSAC PnP, then ``finish_local``."""
         local = self.local_points(ref_kf)
         sel = np.zeros(0, np.int64)
         seen = None  # the local map's projection from T_pred, once computed (``_moved_px`` needs it again)
@@ -264,7 +264,7 @@ class Tracker:
         # LO-RANSAC pose alone cost the stereo loop room accuracy that this round gives back as well as pycolmap's
         # Ceres refinement did, for a fraction of its time (docs/tracking.md).
         T, _ = optimize_pose(T, X[inl], feats.uv[mk[inl]], ur[mk[inl]], self.stereo_cam, self._one_round)
-        res = self._finish_local(T, feats, ur, ref_kf, tree, "projection", local)  # the map has not changed since
+        res = self.finish_local(T, feats, ur, ref_kf, tree, "projection", local)  # the map has not changed since
         res.tried_reference = far
         return res
 
@@ -286,7 +286,7 @@ class Tracker:
         T_ref, inl = self.refine(T, pids[inl], kps[inl], ur, feats)
         # Few descriptor matches survive a wide baseline (frames 0.1-0.2 m, 7-15 deg apart), and the refinement's
         # depth residuals drop more of them; the local-map round from the RANSAC pose, not this count, decides.
-        return self._finish_local(T_ref if inl.sum() >= self.cfg.min_inliers else T, feats, ur, kf_id, tree, method)
+        return self.finish_local(T_ref if inl.sum() >= self.cfg.min_inliers else T, feats, ur, kf_id, tree, method)
 
     def track(self, feats: Features, ur: np.ndarray, T_pred: np.ndarray, ref_kf: int, after_loss: bool,
               last_ids: np.ndarray | None = None, wide: bool = False) -> TrackResult:
