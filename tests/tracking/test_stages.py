@@ -67,6 +67,10 @@ class Recorder(Stage):
     def after_mapping(self, slam, kf):
         self._log("after_mapping")
 
+    def after_local_ba(self, slam, kf, image):
+        self._log("after_local_ba")
+        return {"recorder": 1.0}
+
     def end_frame(self, slam):
         self._log("end_frame")
 
@@ -93,14 +97,15 @@ def test_hooks_run_in_the_documented_order(tmp_path):
     rec = Recorder()
     st, ests = _run(rec, tmp=tmp_path)
     first = [h for f, h in rec.calls if f == 0]
-    assert first == ["on_frame", "filter", "on_features", "annotate", "on_first_keyframe", "drop_first", "end_frame",
-                     "report"]
+    assert first == ["on_frame", "filter", "on_features", "annotate", "on_first_keyframe", "after_local_ba", "drop_first",
+                     "end_frame", "report"]
     for f in range(1, 12):
         hooks = [h for i, h in rec.calls if i == f and h != "finish"]
         assert hooks[:len(TRACKING_HOOKS)] == TRACKING_HOOKS, (f, hooks)
         assert hooks[-2:] == ["end_frame", "report"]
-        if "on_keyframe" in hooks:  # a keyframe: before local mapping, then after it
-            assert hooks[len(TRACKING_HOOKS):-2] == ["on_keyframe", "after_mapping"]
+        if "on_keyframe" in hooks:  # a keyframe: before local mapping, after it, after its local BA
+            assert hooks[len(TRACKING_HOOKS):-2] == ["on_keyframe", "after_mapping", "after_local_ba"]
+            assert ests[f].times_ms["map_recorder"] == 1.0  # the step's ms, as the loop step's
     assert rec.calls[-1][1] == "finish"
     assert all(e.times_ms["recorder"] == 1.0 for e in ests)
 
@@ -119,3 +124,18 @@ def test_a_stage_keyframe_request_makes_a_keyframe():
     plain, _ = _run(Recorder())
     every, ests = _run(Recorder(every_frame=True))
     assert len(every.map.keyframes) == sum(e.tracked for e in ests) > len(plain.map.keyframes)
+
+
+def test_loop_closing_is_the_first_stage():
+    """With loop closing on, the loop closer is a stage, first in the list (a lost frame is relocalised by place
+    recognition before lines or dense tracking measure it); off, there is none."""
+    from vslam.loop.config import LoopConfig
+    from vslam.tracking.dense import DenseConfig
+    from vslam.tracking.stages.loop import LoopStage
+
+    seq = SyntheticSequence(SyntheticConfig(n_frames=2, **SMALL), sensor="rgbd")
+    on = SlamTracker(seq.calibration, "rgbd", SlamConfig(loop=LoopConfig(enabled=True), dense=DenseConfig(enabled=True)))
+    assert isinstance(on.stages[0], LoopStage) and on.loop is on.stages[0].loop
+    assert [s.name for s in on.stages] == ["loop", "dense"]
+    off = SlamTracker(seq.calibration, "rgbd", SlamConfig())
+    assert off.loop is None and all(s.name != "loop" for s in off.stages)

@@ -1,6 +1,6 @@
 """``SlamTracker``'s steps around its map: the map's start (depth, or the monocular two-view initialisation and
 the frames seen before it), a tracked frame's status and the keyframe decision, the BA worker's write-back and
-the loop step after a keyframe.
+the stages' steps after a keyframe's local BA (the loop step).
 """
 
 from __future__ import annotations
@@ -41,9 +41,6 @@ class MapSteps:
             self.T_world_cam = kfs[1].T_world_cam.copy()
             for s in self.stages:
                 s.on_two_view_map(self, kfs, frame)
-            if self.loop is not None:  # the reference view's image is gone: an image descriptor sees only the second
-                for k in kfs:
-                    self.loop.add_keyframe(k, frame.image if k is kfs[1] else None)
             return True
         if int(np.isfinite(depth).sum()) < self.cfg.tracking.min_depth_points:
             return False
@@ -52,8 +49,8 @@ class MapSteps:
         for s in self.stages:
             s.on_keyframe(self, kf, frame, None)
         self.mapper.process(kf, np.full(len(feats), -1, np.int64))
-        if self.loop is not None:
-            self.loop.add_keyframe(kf, frame.image)
+        for s in self.stages:
+            s.after_local_ba(self, kf, frame.image)
         self.ref_kf, self.last_kf_frame = kf.id, self.n_frames
         self.T_world_cam = T0.copy()
         return True
@@ -116,21 +113,24 @@ class MapSteps:
         T_before = kf.T_world_cam.copy()
         ms = {"wait": self.mapper.flush()}
         self._rel_scale = 1.0
-        if self.loop is not None:
-            ms.update(self._loop_step(kf, image))
+        ms.update(self._after_local_ba(kf, image))
         rel = inv_T(T_before) @ self.T_world_cam
         rel[:3, 3] *= self._rel_scale
         self.T_world_cam = kf.T_world_cam @ rel
         ms["flush"] = (time.perf_counter() - t) * 1e3
         return ms
 
-    def _loop_step(self, kf, image: np.ndarray) -> dict[str, float]:
-        """Place recognition (and a loop correction) for a mapped keyframe."""
-        t = time.perf_counter()
-        self.loop.add_keyframe(kf, image)  # type: ignore[union-attr]
-        if self.loop.last_scale != 1.0:  # type: ignore[union-attr]  # a monocular loop rescaled this part of the map
-            self.velocity = self.velocity.copy()
-            self.velocity[:3, 3] *= self.loop.last_scale  # type: ignore[union-attr]
-            self._rel_scale = self.loop.last_scale  # type: ignore[union-attr]
-            self.loop.last_scale = 1.0  # type: ignore[union-attr]
-        return {"loop": (time.perf_counter() - t) * 1e3}
+    def _after_local_ba(self, kf, image: np.ndarray) -> dict[str, float]:
+        """The stages' steps for a keyframe whose local BA is written back (place recognition and a loop
+        correction) -> ms per step."""
+        ms: dict[str, float] = {}
+        for s in self.stages:
+            ms.update(s.after_local_ba(self, kf, image))
+        return ms
+
+    def rescale_motion(self, scale: float) -> None:
+        """A monocular loop rescaled the map around the current keyframe: the motion model follows, and the frame
+        tracked after a BA write-back keeps its offset at that scale (``_flush_mapping``)."""
+        self.velocity = self.velocity.copy()
+        self.velocity[:3, 3] *= scale
+        self._rel_scale = scale

@@ -48,10 +48,8 @@ class MapRecovery:
         wide = self._t_tracked is not None and frame.timestamp - self._t_tracked >= self.cfg.tracking.wide_gap_s
         res = self.tracker.track(feats, ur, T_pred, self.ref_kf, after_loss=not self._prev_tracked,  # type: ignore[arg-type]
                                  last_ids=self._last_ids, wide=wide)
-        if not res.ok and self.loop is not None and self.cfg.loop.relocalise:  # place recognition over all keyframes
-            res = self.loop.relocalise(self.tracker, feats, ur, frame.image) or res
-        for s in self.stages:  # lines refine a tracked pose; dense depth tracking tries a lost one
-            res = s.measure(self, frame, feats, ur, T_pred, res)
+        for s in self.stages:  # place relocalisation of a lost frame; lines refine a tracked pose; dense depth
+            res = s.measure(self, frame, feats, ur, T_pred, res)  # tracking tries a lost one
         if not res.ok:  # the camera may be back in a map it left: that map continues
             res = self._relocalise_archived(frame, feats, ur) or res
         return res
@@ -117,8 +115,6 @@ class MapRecovery:
         self.map = self.tracker.map = self.mapper.map = self.frames.map = m
         self.mapper.recent = [p for p in self.mapper.recent if p in m.points]
         self._last_ids = None
-        if self.loop is not None:
-            self.loop.map = m
         for s in self.stages:
             s.on_map(self, m)
 
@@ -224,10 +220,12 @@ class MapRecovery:
         return make_place_descriptor("bow", self.cfg.loop.vocabulary)
 
     def _try_merge(self, kf, image: np.ndarray) -> dict[str, float]:
-        """Look for the new keyframe in the archived maps; on a confirmed match move this map into that one."""
-        t = time.perf_counter()
+        """Look for the new keyframe in the archived maps (none: nothing to do); on a confirmed match move this map
+        into that one."""
         atlas = self.atlas
-        assert atlas is not None
+        if atlas is None or not atlas.maps:
+            return {}
+        t = time.perf_counter()
         vec = (self.loop.db.vector(kf.id) if self.loop is not None and kf.id in self.loop.db
                else atlas.describe(kf.features, image))
         hit = atlas.locate(kf.features, kf.ur, vec) if atlas.cfg.merge else None

@@ -79,14 +79,10 @@ class SlamTracker(MapRecovery, MapSteps):
                       else None)
         if self.atlas is not None:  # frames referenced to keyframes of an archived map follow them there
             self.frames.archived = self.atlas.maps
-        self.loop = None
-        if cfg.loop.enabled or cfg.load_map:
-            from vslam.loop.closing import LoopCloser, attach_saved_map
+        if cfg.load_map:  # the saved map replaces the empty one everywhere it is referenced
+            from vslam.loop.closing import attach_saved_map
 
-            self.loop = LoopCloser(self.map, self.cam, self.stereo_cam, sensor, cfg.loop, cfg.backend, self.mapper)
-            self.loop.frames = self.frames
-            if cfg.load_map:  # the saved map replaces the empty one everywhere it is referenced
-                attach_saved_map(self, cfg.load_map)
+            attach_saved_map(self, cfg.load_map)
         self._t_tracked: float | None = None  # time of the last tracked frame
         self._restart: np.ndarray | None = None  # a map was lost and no new one started yet: the pose it starts at
         self._lost_for_now = 0.0  # seconds since the last tracked frame, at the last frame not tracked
@@ -113,6 +109,12 @@ class SlamTracker(MapRecovery, MapSteps):
     def _part(self, stage: str, attr: str):
         st = self._stage(stage)
         return getattr(st, attr) if st is not None else None
+
+    @property
+    def loop(self):
+        """The loop closer (``vslam.loop.closing.LoopCloser``: place database, relocalisation, loop correction),
+        None with loop closing off."""
+        return self._part("loop", "loop")
 
     @property
     def vio(self):
@@ -212,12 +214,11 @@ class SlamTracker(MapRecovery, MapSteps):
                 self.ref_kf, self.last_kf_frame = kf.id, self.n_frames
                 if self.mapper.pending is not None:  # local BA in the worker; the loop step waits for it
                     self._pending = (kf, frame.image, self.n_frames)
-                elif self.loop is not None:
-                    ms_map = _add_ms(ms_map, self._loop_step(kf, frame.image))
+                else:
+                    ms_map = _add_ms(ms_map, self._after_local_ba(kf, frame.image))
                 # local BA (and a loop correction) moved the keyframe: the frame's pose follows it
                 self.T_world_cam = kf.T_world_cam.copy()
-                if self.atlas is not None and self.atlas.maps:
-                    ms_map = _add_ms(ms_map, self._try_merge(kf, frame.image))
+                ms_map = _add_ms(ms_map, self._try_merge(kf, frame.image))
         for s in self.stages:
             s.end_frame(self)
         t4 = time.perf_counter()
@@ -256,7 +257,7 @@ class SlamTracker(MapRecovery, MapSteps):
     def final_poses(self, frame_indices: list[int]) -> np.ndarray | None:
         """(F,4,4) poses of the frames through their reference keyframes when a loop correction or a monocular
         inertial rescale moved the map after they were written (``FrameLog``), else None (the online poses stand)."""
-        moved = self.frames.moved or (self.loop is not None and self.loop.stats.corrected > 0)
+        moved = self.frames.moved or any(s.moved_map() for s in self.stages)
         return self.frames.poses(frame_indices) if moved else None
 
     def finish(self, out_dir: str | Path) -> dict[str, Path]:
@@ -282,8 +283,6 @@ class SlamTracker(MapRecovery, MapSteps):
         paths = {"keyframes": write_trajectory(out / "keyframes.tum.txt", Trajectory(stamps, poses), "tum")}
         paths["map"] = write_map_ply(out / "map.ply", self.map.points_xyz(np.array(list(self.map.points), np.int64)))
         paths.update(written)
-        if self.loop is not None:
-            paths["loops"] = self.loop.write_stats(out / "loops.json")
         if self.cfg.save_map:
             from vslam.loop.closing import save_slam_map
 

@@ -9,10 +9,18 @@ from vslam.tracking.stages.base import Stage
 
 
 def build_stages(slam: Any, detector: object | None = None) -> list[Stage]:
-    """The stages ``slam.cfg`` enables. The order is the order of every hook: the IMU first (it takes the frame's
+    """The stages ``slam.cfg`` enables. The order is the order of every hook: loop closing first (a lost frame is
+    relocalised by place recognition before the other stages measure it), the IMU (it takes the frame's
     samples and predicts), then dynamic filtering (it decides which keypoints the others see), lines (they refine
     a tracked pose), dense depth tracking (the last recovery step). ``detector``: see ``SlamTracker``."""
     cfg, stages = slam.cfg, []
+    if cfg.loop.enabled or cfg.load_map:
+        from vslam.loop.closing import LoopCloser
+        from vslam.tracking.stages.loop import LoopStage
+
+        loop = LoopCloser(slam.map, slam.cam, slam.stereo_cam, slam.sensor, cfg.loop, cfg.backend, slam.mapper)
+        loop.frames = slam.frames
+        stages.append(LoopStage(loop, cfg.loop.relocalise))
     if cfg.inertial.enabled:
         from vslam.tracking.stages.inertial import InertialStage
         from vslam.tracking.vio import Vio

@@ -1,6 +1,6 @@
 """The interface of an optional SLAM stage: hooks ``SlamTracker`` calls at fixed points of every frame.
 
-A stage (visual-inertial, lines, dynamic filtering, dense depth tracking) is built from its config when enabled
+A stage (loop closing, visual-inertial, lines, dynamic filtering, dense depth tracking) is built from its config when enabled
 and appended to ``SlamTracker.stages``; the tracker calls each hook on every stage in list order, and a hook a
 stage does not override does nothing. So adding a stage means writing one module and one line in
 ``build_stages``, not editing ``track``. The hooks, in the order a frame meets them:
@@ -11,19 +11,22 @@ stage does not override does nothing. So adding a stage means writing one module
 - ``annotate(est)``: fields of the frame's ``FrameEstimate`` known before tracking.
 - ``predict(frame, T_pred)``: the pose prior (IMU propagation replaces constant velocity).
 - ``measure(slam, frame, feats, ur, T_pred, res)``: a step of the recovery ladder, given the result so far
-  (lines refine a tracked pose; dense depth tracking tries a frame features lost).
+  (place relocalisation of a lost frame; lines refine a tracked pose; dense depth tracking tries a frame
+  features lost).
 - ``on_pose(slam, frame, res)``: the frame's pose is decided (tracked or predicted).
 - ``drop(slam, ok, res, feats, depth, ur)``: keypoints to leave out of mapping once the pose is known (``res``
   None on a map's first frame).
 - ``on_two_view_map(slam, kfs, frame)``: a monocular map was just made from two views.
 - ``wants_keyframe(frame, res, status)`` / ``decides_keyframe(method, depth, min_inliers)``: keyframe requests.
 - ``on_keyframe(slam, kf, frame, res)``: a keyframe was made, before local mapping (``res`` None for the first
-  keyframe of a map); ``after_mapping(slam, kf)``: local BA has run.
+  keyframe of a map); ``after_mapping(slam, kf)``: local mapping has run (its BA perhaps still in the worker);
+  ``after_local_ba(slam, kf, image)``: the keyframe's local BA is written back (the loop step) -> ms per step.
 - ``end_frame(slam)``: the frame is done (IMU initialisation); ``on_transform(T, scale)``: the map was moved by
   a similarity (the IMU initialisation's gravity alignment and metric scale).
 - ``report(est, front)``: stage timings and counts into the ``FrameEstimate``.
 - ``on_map(slam, m)``: the map every stage works on changed (a new map, a merge, a loaded map);
   ``on_new_map()``: a new map was started.
+- ``moved_map()``: whether keyframes moved after their frames' poses were written (a loop correction).
 - ``finish(slam, out)``: end of the run; files written.
 
 ``slam`` is the ``SlamTracker``: a stage reads its pose state and writes the pose where its step decides it
@@ -96,6 +99,11 @@ class Stage:
     def after_mapping(self, slam: Any, kf: Keyframe) -> None:
         pass
 
+    def after_local_ba(self, slam: Any, kf: Keyframe, image: np.ndarray | None) -> dict[str, float]:
+        """A keyframe whose local BA is written back (at once, or when the BA worker's result lands) -> ms per
+        step."""
+        return {}
+
     def end_frame(self, slam: Any) -> None:
         pass
 
@@ -110,6 +118,10 @@ class Stage:
 
     def on_new_map(self) -> None:
         pass
+
+    def moved_map(self) -> bool:
+        """Whether this stage moved keyframes after their frames' poses were written (a loop correction)."""
+        return False
 
     def stats(self) -> dict[str, int]:
         return {}
