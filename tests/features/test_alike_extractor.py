@@ -63,7 +63,7 @@ def test_half_resolution_keypoints_sit_where_full_resolution_ones_do():
 def test_mask_and_grid_bucketing():
     img = _texture()
     img[:, 160:] = cv2.GaussianBlur(img[:, 160:], (0, 0), 2.5)  # weaker corners on the right
-    cfg = FeatureConfig(extractor="alike-t", n_features=200, grid_cols=4, grid_rows=3)
+    cfg = FeatureConfig(extractor="alike-t", n_features=200, grid_cols=4, grid_rows=3, input_scale=1.0)
     ext = make_extractor(cfg)
     model = load_alike("alike-t")
     right_strongest = np.mean(extract(model, img, 200)[0][:, 0] >= 160)
@@ -73,7 +73,8 @@ def test_mask_and_grid_bucketing():
     mask[:, :100] = True  # True: no keypoints wanted here
     f = ext.detect(img, _cam(), mask)
     assert len(f) == 200 and f.raw[:, 0].min() >= 99.0  # sub-pixel refinement may step just across the edge
-    strong = make_extractor(FeatureConfig(extractor="alike-t", n_features=200, min_score=0.6)).detect(img, _cam())
+    strong = make_extractor(FeatureConfig(extractor="alike-t", n_features=200, min_score=0.6, input_scale=1.0)
+                            ).detect(img, _cam())
     # the floor is on the peaks; the score reported is sampled at the refined point, a little below its peak
     assert 0 < len(strong) < 200 and strong.response.min() > 0.45
 
@@ -104,3 +105,16 @@ def test_bad_names_and_files_are_one_line(tmp_path):
     junk.write_bytes(b"not a checkpoint")
     with pytest.raises(ConfigError, match="junk.pt"):
         make_extractor(FeatureConfig(extractor="alike-t", weights=str(junk)))
+
+
+def test_a_config_naming_alike_gets_its_default_input_scale():
+    """``features.input_scale`` unset: ALIKE's own default (half resolution), as ``--set
+    slam.features.extractor=alike-t`` in a preset written for ORB gives it; set, the setting."""
+    from vslam.features.alike import DEFAULT_INPUT_SCALE
+
+    img = _texture()
+    default = make_extractor(FeatureConfig(extractor="alike-t", n_features=300))
+    assert default.input_scale == DEFAULT_INPUT_SCALE == 0.5
+    half = make_extractor(FeatureConfig(extractor="alike-t", n_features=300, input_scale=0.5))
+    np.testing.assert_array_equal(default.detect(img, _cam()).raw, half.detect(img, _cam()).raw)
+    assert make_extractor(FeatureConfig(extractor="alike-t", input_scale=1.0)).input_scale == 1.0

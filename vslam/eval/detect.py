@@ -57,7 +57,6 @@ def coco_results(detector: Any, files: list[Path], threshold: float,
     COCO result entries (module docstring)."""
     import cv2
 
-    names = list(detector.names)
     out: list[dict[str, Any]] = []
     for n, f in enumerate(files):
         image = cv2.imread(str(f), cv2.IMREAD_COLOR)

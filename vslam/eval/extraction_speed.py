@@ -126,7 +126,7 @@ def time_set(s: SpeedSet, repeats: int = 3, runtimes: tuple[str, ...] = ("torch"
                     st.setdefault(step, []).append(1e3 * (now - t))
                     t = now
 
-                xy, score, desc = extract(ext.model, im, cfg.n_features, cfg.input_scale, None, ext.select,
+                xy, score, desc = extract(ext.model, im, cfg.n_features, ext.input_scale, None, ext.select,
                                           cfg.oversample, cfg.min_score, ext.maps, lap)
                 ms.setdefault(name, []).append(1e3 * (time.perf_counter() - t0))
                 counts.setdefault(name, []).append(len(xy))
@@ -141,7 +141,7 @@ def time_set(s: SpeedSet, repeats: int = 3, runtimes: tuple[str, ...] = ("torch"
             if s.extra:
                 ms.setdefault("front_end", []).append(first_ms + sum(ms[name][-1] for name, _ in s.extra))
             ext0 = next(iter(alikes.values()))
-            x = network_input(im, cfg.input_scale)
+            x = network_input(im, ext0.input_scale)
             for k, v in layer_ms(ext0.model, x).items():
                 layers.setdefault(k, []).append(v)
 
@@ -164,7 +164,8 @@ def time_set(s: SpeedSet, repeats: int = 3, runtimes: tuple[str, ...] = ("torch"
             "steps": {k: _median(v) for k, v in steps.items()}, "layers": _median(layers),
             "keypoints": {k: float(np.mean(v)) for k, v in counts.items()}, "match_ms": _median(match_ms),
             "matches": {k: float(np.mean(v)) for k, v in matches.items()}, "size": f"{w}x{h}",
-            "frames": len(s.images), "n_features": cfg.n_features, "input_scale": cfg.input_scale}
+            "frames": len(s.images), "n_features": cfg.n_features,
+            "input_scale": next(iter(alikes.values())).input_scale}
 
 
 def extraction_speed(sets: list[SpeedSet], repeats: int = 3, threads: int = 2,

@@ -291,8 +291,6 @@ def run_feature_bench(weights: str | Path, root: Path, cfg: FeatureBenchConfig =
            "images": {k: len(v) for k, v in images.items()}, "n_keypoints": cfg.n_keypoints}
     vga = next((im for _, ims in images.items() for _, im in ims if im.shape == (480, 640)), None)
     if vga is not None:
-        import torch
-
         res["ms_640x480"] = time_methods(fns, vga)
         res["threads"] = torch.get_num_threads()
     return res

@@ -139,6 +139,11 @@ def extract(model: torch.nn.Module, image: np.ndarray, n: int, scale: float = 1.
     return xy_np[order], score.numpy().astype(np.float64)[order], desc.numpy().astype(np.float32)[order]
 
 
+# the input scale of a config that names ALIKE without one: SLAM's accuracy at half resolution is ORB's or
+# better at a quarter of the network's cost (docs/features.md); the learned presets use it too
+DEFAULT_INPUT_SCALE = 0.5
+
+
 class AlikeExtractor:
     """The ``Extractor`` of ``features.extractor: alike-*``: at most ``n_features`` keypoints scoring above
     ``min_score``, spread over the ``grid_cols`` x ``grid_rows`` grid like ORB's (``orb.bucket``), float
@@ -151,6 +156,7 @@ class AlikeExtractor:
 
     def __init__(self, cfg: FeatureConfig):
         self.cfg = cfg
+        self.input_scale = DEFAULT_INPUT_SCALE if cfg.input_scale is None else cfg.input_scale
         self.model = load_alike(cfg.extractor, cfg.weights)
         self.maps = make_maps(self.model, cfg.runtime)
 
@@ -160,7 +166,7 @@ class AlikeExtractor:
         return bucket(xy, score, shape, self.cfg.n_features, self.cfg.grid_cols, self.cfg.grid_rows)
 
     def detect(self, image: np.ndarray, camera: PinholeCamera, mask: np.ndarray | None = None) -> Features:
-        xy, score, desc = extract(self.model, image, self.cfg.n_features, self.cfg.input_scale, mask, self.select,
+        xy, score, desc = extract(self.model, image, self.cfg.n_features, self.input_scale, mask, self.select,
                                   self.cfg.oversample, self.cfg.min_score, self.maps)
         return Features(raw=xy, uv=camera.undistort_points(xy), desc=desc, octave=np.zeros(len(xy), np.int64),
                         response=score, scale_factor=self.cfg.scale_factor)

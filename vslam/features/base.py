@@ -49,10 +49,10 @@ class FeatureConfig:
     # keypoints`; without them, or on CUDA, the float network runs): faster convolutions, keypoints and
     # descriptors a little off the float ones (docs/features.md, 'Measurements behind settings in the code').
     int8: bool = True
-    # extractors alike-t / alike-s / alike-n: the network sees the image resized by this (0.5: a quarter of the
-    # cost; two-view pose accuracy and speed per setting in docs/features.md). ``weights`` "" = the shipped
-    # vslam/models/alike_<variant>.pt.
-    input_scale: float = 1.0
+    # extractors alike-t / alike-s / alike-n: the network sees the image resized by this; None: the extractor's
+    # own default (``features.alike.DEFAULT_INPUT_SCALE``, half resolution: a quarter of the cost; two-view pose
+    # accuracy and speed per setting in docs/features.md). ``weights`` "" = the shipped vslam/models/alike_<variant>.pt.
+    input_scale: float | None = None
     min_score: float = 0.2  # alike-*: score floor of a keypoint (the published code's threshold)
     # alike-*: what runs the network's dense part, "torch" or "onnxruntime" (the same maps to float rounding; faster
     # on two threads of a loaded machine, the same on one: docs/features.md)
@@ -64,7 +64,7 @@ class FeatureConfig:
         if self.n_levels < 1 or not self.scale_factor > 1.0:
             raise ConfigError(f"slam.features: n_levels must be >= 1 and scale_factor > 1, got {self.n_levels}, "
                               f"{self.scale_factor}")
-        if not 0.0 < self.input_scale <= 1.0:
+        if self.input_scale is not None and not 0.0 < self.input_scale <= 1.0:
             raise ConfigError(f"slam.features.input_scale must be in (0, 1], got {self.input_scale}")
         if self.runtime not in ("torch", "onnxruntime"):
             raise ConfigError(f"slam.features.runtime must be torch or onnxruntime, got {self.runtime!r}")
