@@ -305,9 +305,7 @@ def attach_saved_map(slam, path: str) -> None:
 
     loaded = load_map(path)
     check_sensor(path, loaded.header, sensor_header(slam.sensor, slam.cam, slam.cfg.features.extractor))
-    slam.map = slam.tracker.map = slam.mapper.map = slam.loop.map = slam.frames.map = loaded.map
-    if slam.lines is not None:  # map files hold points only: the line map starts empty on the loaded keyframes
-        slam.lines.map = loaded.map
+    slam.use_map(loaded.map)  # map files hold points only: a line map starts empty on the loaded keyframes
     if loaded.database.dim != slam.loop.db.dim:
         raise MapFileError(f"{path}: place descriptors of dimension {loaded.database.dim}, this config uses "
                            f"{slam.loop.db.dim} (slam.loop.descriptor)")

@@ -110,8 +110,9 @@ class MapRecovery:
         """Seconds since the last tracked frame; 0 while a new map cannot be made (no Atlas)."""
         return 0.0 if self.atlas is None or self._t_tracked is None else t - self._t_tracked
 
-    def _use_map(self, m: Map) -> None:
-        """Make ``m`` the map every stage works on."""
+    def use_map(self, m: Map) -> None:
+        """Make ``m`` the map the tracker, the mapper and every stage work on (a map switch, a merge, a loaded
+        map)."""
         self.map = self.tracker.map = self.mapper.map = self.frames.map = m
         self.mapper.recent = [p for p in self.mapper.recent if p in m.points]
         self._last_ids = None
@@ -133,7 +134,7 @@ class MapRecovery:
         if self._archive_current():
             self.map_id = atlas.new_id()
         self._set_loop_database(None)
-        self._use_map(self.map.successor())
+        self.use_map(self.map.successor())
         for s in self.stages:
             s.on_new_map()
         self.ref_kf, self.velocity, self._t_tracked = None, np.eye(4), None
@@ -177,7 +178,7 @@ class MapRecovery:
         m.continue_ids(self.map)  # ids stay unique across the run's maps
         self._archive_current()
         self._set_loop_database(db)
-        self._use_map(m)
+        self.use_map(m)
         self.map_id = map_id
         self._restart = None
         if self.mono_init is not None:
@@ -262,7 +263,7 @@ class MapRecovery:
         if self.loop is not None and old_db is not None:  # one database for the merged map
             for k in old_db.ids().tolist():
                 self.loop.db.add(k, old_db.vector(k))
-        self._use_map(old)
+        self.use_map(old)
         self.frames.moved = True  # the frames of the merged map are re-expressed in the old map's frame
         atlas.parent[new_id] = old_id
         atlas.merges.append((new_id, old_id, kf.id, cand))
