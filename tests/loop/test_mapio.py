@@ -133,3 +133,15 @@ def test_pose_links_round_trip(tmp_path):
     np.testing.assert_array_equal(m2.links[0].T_a_b, T)
     np.testing.assert_array_equal(m2.links[0].cov, cov)
     st.map.links.clear()  # room_map() is cached: leave it as it was
+
+
+def test_every_part_works_on_the_loaded_map(saved):
+    """The saved map replaces the empty one everywhere it is referenced (``SlamTracker.use_map``): tracker,
+    mapper, frame log, loop closer and the stages (the IMU stage included)."""
+    from vslam.tracking.vio import VioConfig
+
+    s = seq(20)
+    cfg = dataclasses.replace(SlamConfig(), load_map=str(saved), inertial=VioConfig(enabled=True))
+    st = SlamTracker(s.calibration, "rgbd", cfg)
+    assert len(st.map.keyframes) > 0
+    assert all(m is st.map for m in (st.tracker.map, st.mapper.map, st.frames.map, st.loop.map, st.vio.map))
