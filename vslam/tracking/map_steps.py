@@ -49,8 +49,7 @@ class MapSteps:
         for s in self.stages:
             s.on_keyframe(self, kf, frame, None)
         self.mapper.process(kf, np.full(len(feats), -1, np.int64))
-        for s in self.stages:
-            s.after_local_ba(self, kf, frame.image)
+        self._after_local_ba(kf, frame.image)
         self.ref_kf, self.last_kf_frame = kf.id, self.n_frames
         self.T_world_cam = T0.copy()
         return True
@@ -128,9 +127,14 @@ class MapSteps:
             ms.update(s.after_local_ba(self, kf, image))
         return ms
 
+    def scale_motion(self, scale: float) -> None:
+        """The map's unit changed by ``scale`` (the IMU's metric scale, a monocular merge or loop): the motion
+        model's translation follows (a new array: the old one may be held elsewhere)."""
+        self.velocity = self.velocity.copy()
+        self.velocity[:3, 3] *= scale
+
     def rescale_motion(self, scale: float) -> None:
         """A monocular loop rescaled the map around the current keyframe: the motion model follows, and the frame
         tracked after a BA write-back keeps its offset at that scale (``_flush_mapping``)."""
-        self.velocity = self.velocity.copy()
-        self.velocity[:3, 3] *= scale
+        self.scale_motion(scale)
         self._rel_scale = scale

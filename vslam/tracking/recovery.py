@@ -257,8 +257,7 @@ class MapRecovery:
         new, new_id = self.map, self.map_id
         if scale != 1.0:  # the frames' poses relative to their keyframes, and the motion model, take the old unit
             self.frames.scale_refs({k: scale for k in new.keyframes})
-            self.velocity = self.velocity.copy()
-            self.velocity[:3, 3] *= scale
+            self.scale_motion(scale)
         old.absorb(new, T_old_new, scale)
         if self.loop is not None and old_db is not None:  # one database for the merged map
             for k in old_db.ids().tolist():

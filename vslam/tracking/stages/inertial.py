@@ -53,8 +53,7 @@ class InertialStage(Stage):
         slam.frames.transform(T, scale)  # monocular: the frames tracked so far were at the old map scale
         for s in slam.stages:
             s.on_transform(T, scale)
-        slam.velocity = slam.velocity.copy()
-        slam.velocity[:3, 3] *= scale
+        slam.scale_motion(scale)
         if vio.method == "dynamic" and slam.ref_kf is not None:  # (and refinements)
             last = max(slam.map.keyframes)
             vio.full_chain = True  # one VI BA over every keyframe
