@@ -9,7 +9,7 @@ from pathlib import Path
 
 from vslam.bench import load_sidecar, load_suite, run_bench
 from vslam.bench.kinds.run import stage_times
-from vslam.errors import ConfigError
+from vslam.errors import ConfigError, DatasetError
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -113,10 +113,17 @@ def test_make_dynamic_rows_name_their_sequence(tmp_path):
         _composited({"people": 2}, tmp_path)
     with pytest.raises(ConfigError, match="takes people, seed .seeds: kind ab., coco"):
         _composited({"data": "tum/x", "walkers": 2}, tmp_path)
-    done = tmp_path / "_data" / "x-people2-seed1"
-    done.mkdir(parents=True)
-    (done / "boxes.txt").write_text("# already composited\n")  # written last, once, then reused as it is
+    from vslam.data.composite import GENERATOR_VERSION
+
+    stale = tmp_path / "_data" / f"x-people2-seed1-v{GENERATOR_VERSION - 1}"  # another generator's frames
+    done = tmp_path / "_data" / f"x-people2-seed1-v{GENERATOR_VERSION}"
+    for d in (stale, done):
+        d.mkdir(parents=True)
+        (d / "boxes.txt").write_text("# already composited\n")  # written last, once, then reused as it is
     assert _composited({"data": "tum/x", "people": 2, "seed": 1}, tmp_path) == ("tum", done.resolve())
+    done.joinpath("boxes.txt").unlink()  # not this generator's: made again (here: no such data folder)
+    with pytest.raises(DatasetError):
+        _composited({"data": "tum/x", "people": 2, "seed": 1}, tmp_path)
 
 
 def test_ab_rows_over_composites_run_one_grid_point_per_walker_seed(tmp_path, monkeypatch):

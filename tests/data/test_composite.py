@@ -98,6 +98,15 @@ def test_make_dynamic_on_teddy_reads_back(tmp_path):
             assert len(b) >= 1 and b[:, 0].min() <= xs.min() and b[:, 2].max() >= xs.max()
 
 
+@pytest.mark.skipif(not TEDDY.is_dir(), reason="TUM teddy not in $VSLAM_DATA")
+def test_teddy_walkers_stand_along_the_mocap_vertical():
+    from vslam.data.composite import world_up
+    from vslam.data.tum import TumRgbdSequence
+
+    up = world_up(TumRgbdSequence(TEDDY).groundtruth().poses)
+    assert np.degrees(np.arccos(up[2])) < 5.0  # fr3's mocap z is up; the first camera's -y is 26 degrees off
+
+
 def test_road_walkers_stand_on_the_road_ahead():
     """KITTI walkers: feet ``camera_height`` below the camera of the frame they belong to, 6-14 m ahead."""
     from vslam.data.composite import place_walkers_on_road
@@ -113,6 +122,61 @@ def test_road_walkers_stand_on_the_road_ahead():
         np.testing.assert_allclose(feet_y, cfg.camera_height, atol=1e-9)
         ahead = b.centre[2] - poses[f][2, 3]
         assert 6.0 <= ahead <= 14.0 and 1.0 <= abs(b.centre[0]) <= 4.0
+
+
+def _circling_poses(pitch_deg: float, n: int = 60, roll_sd_deg: float = 1.5, seed: int = 0) -> np.ndarray:
+    """A hand-held camera walking around the origin, looking at it and pitched down by ``pitch_deg``, small
+    random roll; world z up (as TUM's mocap frame happens to be)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n):
+        a = 2 * np.pi * 0.6 * k / n
+        C = np.array([2 * np.cos(a), 2 * np.sin(a), 1.5])
+        fwd_h = -C[:2] / np.linalg.norm(C[:2])
+        p, r = np.radians(pitch_deg), np.radians(rng.normal(0, roll_sd_deg))
+        z = np.r_[np.cos(p) * fwd_h, -np.sin(p)]
+        x0 = np.cross(z, [0, 0, 1.0])
+        x0 /= np.linalg.norm(x0)
+        y0 = np.cross(z, x0)
+        x, y = np.cos(r) * x0 + np.sin(r) * y0, -np.sin(r) * x0 + np.cos(r) * y0
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = np.c_[x, y, z], C
+        out.append(T)
+    return np.array(out)
+
+
+def test_world_up_is_gravity_not_the_pitched_first_camera():
+    """The walkers stood along the first camera's -y: 25 degrees off vertical on TUM teddy, so they leaned and,
+    seen from the side, lay tilted in the image (COCO detectors miss such people). Gravity comes from the plane
+    the cameras' x axes span."""
+    from vslam.data.composite import place_people, world_up
+
+    poses = _circling_poses(25.0)
+    up = world_up(poses)
+    assert np.degrees(np.arccos(up @ [0, 0, 1.0])) < 2.0
+    assert np.degrees(np.arccos(-poses[0][:3, 1] @ [0, 0, 1.0])) > 20.0  # what the walkers used to stand along
+    boards = place_people([CUT], poses[0], MakeDynamicConfig(n_people=3, seed=2), np.random.default_rng(2), up, 0.0)
+    for b in boards:
+        np.testing.assert_allclose(b.up, up)
+        assert abs(b.direction @ up) < 1e-9  # they walk level
+        c = b.corners_world(0.3, poses[5][:3, 3])
+        np.testing.assert_allclose(c[2:] @ up, 0.0, atol=1e-9)  # feet on the floor
+    # a camera that never turns: no plane of x axes; its mean -y without the x component (no roll assumed)
+    still = np.repeat(poses[:1], 10, axis=0)
+    np.testing.assert_allclose(world_up(still), -poses[0][:3, 1], atol=1e-9)
+
+
+def test_floor_height_is_the_lowest_surface_seen():
+    from vslam.data.composite import floor_height
+
+    K2 = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    T = np.eye(4)  # camera 1.5 m above a floor at world y = +1.5 (camera y down), looking along +z
+    v, u = np.mgrid[0:240, 0:320]
+    ray_y = (v - 120) / 300.0
+    depth = np.where(ray_y > 0.05, 1.5 / np.maximum(ray_y, 1e-9), 0.0).astype(np.float32)  # floor below the horizon
+    depth[depth > 10] = 0
+    assert floor_height(depth, K2, T, np.array([0, -1.0, 0])) == pytest.approx(-1.5, abs=1e-3)
+    assert floor_height(np.zeros((240, 320), np.float32), K2, T, np.array([0, -1.0, 0])) is None
 
 
 KITTI07 = data_root() / "kitti" / "sequences" / "07"

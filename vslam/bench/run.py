@@ -132,7 +132,7 @@ def _locked(side: Path) -> Iterator[None]:
 def _composited(spec: dict[str, Any], jobs_dir: Path) -> tuple[str, Path]:
     """(dataset kind, folder) of the make-dynamic sequence a row names, written on first use (seeded: the same
     spec, the same frames)."""
-    from vslam.data.composite import make_dynamic, walker_config
+    from vslam.data.composite import GENERATOR_VERSION, make_dynamic, walker_config
     from vslam.data.kitti import is_kitti_layout
     from vslam.paths import data_root
 
@@ -142,7 +142,7 @@ def _composited(spec: dict[str, Any], jobs_dir: Path) -> tuple[str, Path]:
     src = data_root() / str(spec["data"])
     cfg = walker_config(src, int(spec["people"]) if "people" in spec else None, int(spec.get("seed", 0)))
     kitti = is_kitti_layout(src)
-    out = (jobs_dir / "_data" / f"{src.name}-people{cfg.n_people}-seed{cfg.seed}").resolve()
+    out = (jobs_dir / "_data" / f"{src.name}-people{cfg.n_people}-seed{cfg.seed}-v{GENERATOR_VERSION}").resolve()
     seq = out / "sequences" / src.name if kitti else out
     if not (seq / "boxes.txt").is_file():  # written last
         seq = make_dynamic(src, out, data_root() / str(spec.get("coco", "coco128")), cfg)

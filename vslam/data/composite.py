@@ -24,6 +24,10 @@ from vslam.progress import Progress
 
 log = logging.getLogger(__name__)
 
+# Changes whenever the same seed renders other frames, so cached composites (``vslam bench``) are made again:
+# 2 = TUM walkers upright along gravity, feet on the floor (1: along the first camera's -y, leaning ~26 degrees).
+GENERATOR_VERSION = 2
+
 
 @dataclass(frozen=True)
 class Billboard:
@@ -169,18 +173,56 @@ class MakeDynamicConfig:
                    speed=(1.0, 1.5), amp=(1.0, 2.0))
 
 
-def place_people(cutouts: list[np.ndarray], T_world_cam0: np.ndarray, cfg: MakeDynamicConfig, rng: np.random.Generator) -> list[Billboard]:
-    """Billboards ahead of the first camera, walking left-right; up is the first camera's -y (TUM world frames
-    are not gravity-aligned in a documented way)."""
+def world_up(poses: np.ndarray) -> np.ndarray:
+    """Gravity's up in the world frame of a hand-held or driven camera's poses (N,4,4) T_world_cam: the normal
+    of the plane that the cameras' x axes (image right) span, since such cameras keep their roll small (a
+    TUM mocap frame's axes are not documented, and its first camera looks down at the scene: its -y is
+    ~25 degrees off vertical on fr3/teddy, which tilted the walkers). Signed to agree with the cameras' -y.
+    A camera that never turns leaves the plane undefined: then the mean -y with the mean x taken out."""
+    X = poses[:, :3, 0]
+    cam_up = -poses[:, :3, 1].mean(0)
+    _, s, vt = np.linalg.svd(X)
+    if len(X) >= 3 and s[1] > 0.1 * s[0]:
+        up = vt[-1]
+    else:
+        x = X.mean(0) / max(np.linalg.norm(X.mean(0)), 1e-9)
+        up = cam_up - x * (cam_up @ x)
+    up = up / max(np.linalg.norm(up), 1e-9)
+    return up if up @ cam_up >= 0 else -up
+
+
+def floor_height(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, up: np.ndarray) -> float | None:
+    """Height along ``up`` of the lowest surface a depth image (metres, 0 invalid) sees (its 2nd percentile:
+    the floor where the floor is in view), or None without enough valid depth."""
+    v, u = np.nonzero(depth > 0)
+    if len(u) < 1000:
+        return None
+    z = depth[v, u].astype(np.float64)
+    X_cam = (np.linalg.inv(K) @ np.vstack([u, v, np.ones_like(u)])) * z
+    heights = (T_world_cam[:3, :3] @ X_cam).T @ up + T_world_cam[:3, 3] @ up
+    return float(np.percentile(heights, 2))
+
+
+def place_people(cutouts: list[np.ndarray], T_world_cam0: np.ndarray, cfg: MakeDynamicConfig, rng: np.random.Generator,
+                 up: np.ndarray | None = None, floor: float | None = None) -> list[Billboard]:
+    """Billboards ahead of the first camera, upright along ``up`` (gravity: ``world_up``; None = the first
+    camera's -y), walking left-right; each stands on ``floor`` (a height along ``up``) where it is known, else
+    its centre is 0.2 m below the point ``distance`` ahead along the first camera's axis."""
     R, C = T_world_cam0[:3, :3], T_world_cam0[:3, 3]
-    up, fwd, right = -R[:, 1], R[:, 2], R[:, 0]
+    up = -R[:, 1] if up is None else up / np.linalg.norm(up)
+    axis = R[:, 2]
+    fwd = axis - up * (axis @ up)
+    fwd = fwd / max(np.linalg.norm(fwd), 1e-9)
+    right = np.cross(fwd, up)
     boards = []
     for k in range(cfg.n_people):
         d = rng.uniform(*cfg.distance)
-        centre = C + d * fwd + rng.uniform(-0.5, 0.5) * d * right - 0.2 * up
+        ahead = C + d * axis + rng.uniform(-0.5, 0.5) * d * right - 0.2 * up
         amp = rng.uniform(*cfg.amp)
-        boards.append(Billboard(cutouts[int(rng.integers(len(cutouts)))], centre, up, rng.uniform(*cfg.height),
-                                right, amp, rng.uniform(*cfg.speed) / amp, rng.uniform(0, 2 * np.pi)))
+        cutout, height = cutouts[int(rng.integers(len(cutouts)))], rng.uniform(*cfg.height)
+        centre = ahead if floor is None else ahead + (floor + 0.5 * height - ahead @ up) * up
+        boards.append(Billboard(cutout, centre, up, height, right, amp, rng.uniform(*cfg.speed) / amp,
+                                rng.uniform(0, 2 * np.pi)))
     return boards
 
 
@@ -240,6 +282,8 @@ def composited_frames(seq_dir: str | Path, coco_root: str | Path, cfg: MakeDynam
         raise DatasetError(seq_dir, "make-dynamic renders with a pinhole model; the images must be undistorted (freiburg3)")
     rng = np.random.default_rng(cfg.seed)
     cutouts = person_cutouts(coco_root)
+    posed = [T for T in (seq.frame_pose(i) for i in range(len(seq))) if T is not None]
+    up = world_up(np.array(posed)) if posed else None
     boards: list[Billboard] | None = None
     t0 = 0.0
     for i, fr in enumerate(seq):
@@ -250,7 +294,8 @@ def composited_frames(seq_dir: str | Path, coco_root: str | Path, cfg: MakeDynam
         mask, boxes = np.zeros(img.shape[:2], bool), np.zeros((0, 4))
         if fr.T_world_cam is not None:
             if boards is None:
-                boards, t0 = place_people(cutouts, fr.T_world_cam, cfg, rng), fr.timestamp
+                floor = floor_height(depth, cam.K, fr.T_world_cam, up) if fr.depth is not None else None
+                boards, t0 = place_people(cutouts, fr.T_world_cam, cfg, rng, up, floor), fr.timestamp
             if i >= start:
                 img, depth, mask, boxes = composite(img, depth, cam.K, fr.T_world_cam, fr.timestamp - t0, boards)
         if i >= start:
