@@ -293,3 +293,36 @@ def test_filter_takes_a_registry_checkpoint_with_its_input_settings():
     assert f.detector.input_size(image.shape[:2]) == (576, 576)  # 559x536 -> 576 wide, 552.3 -> 576 high
     objs = f.detect(Frame(0, 0.0, image))
     assert len(objs.boxes) == 2 and all(m is None for m in objs.masks)  # the two pedestrians, as boxes
+
+
+def test_a_static_verdict_holds_for_the_box_the_memory_holds():
+    """A box judged static in frame 0 and not detected in frame 1 is still held by the box memory there: its
+    verdict is held as long (it was masked again, so YOLOX-nano's intermittent person box over TUM's teddy bear
+    blanked the scene's main texture between the frames that found it)."""
+    from vslam.dynamic import GeometricConfig
+
+    f = _feats()
+    boxes = [BOX]
+
+    class Once(_Fixed):
+        def detect(self, image):
+            d = super().detect(image)
+            out = Detections(np.array(boxes).reshape(-1, 4), d.scores[: len(boxes)], d.class_ids[: len(boxes)],
+                             d.class_names[: len(boxes)])
+            boxes.clear()  # found in the first frame only
+            return out
+
+    geo = GeometricConfig(enabled=True, keep_static_boxes=True)
+    cfg = DynamicConfig(enabled=True, source="detector", dilation_px=2, box_memory_s=0.1, mask="box", geometric=geo)
+    flt = DynamicFilter(cfg, CAM, detector=Once([BOX], None))
+    verdicts = iter([BOX[None], np.zeros((0, 4)), np.zeros((0, 4)), np.zeros((0, 4))])
+    flt._static_boxes = lambda feats, g: next(verdicts)  # the check's verdicts: static in frame 0, no box later
+    kept = []
+    for i, t in enumerate((0.0, 0.033, 0.066, 0.2)):
+        kept.append(flt.keep(_frame(i, t), f))
+        flt.observe(np.eye(4))
+    inside = in_boxes(f.raw, BOX[None], 2.0)
+    assert inside.sum() > 5
+    np.testing.assert_array_equal(kept[0], ~inside)  # its own frame masks it: the verdict comes after tracking
+    assert kept[1].all() and kept[2].all()  # held by the memory, and so is its verdict
+    assert kept[3].all()  # both gone after box_memory_s

@@ -82,7 +82,8 @@ def test_static_detector_boxes_are_kept_and_moving_ones_masked():
     from vslam.dynamic.detector import Detections
     from vslam.features.base import Features
 
-    def run(keep_static: bool, memory_s: float = 5.0) -> list[tuple[float, float, float]]:
+    def run(keep_static: bool, memory_s: float = 5.0, flag_points: bool = True,
+            walker_boxed: bool = True) -> list[tuple[float, float, float]]:
         rng = np.random.default_rng(3)
         _, mover0, still, desc = _scene(rng)
         # a flat, richly textured wall: each box holds several times more static wall than person
@@ -93,9 +94,10 @@ def test_static_detector_boxes_are_kept_and_moving_ones_masked():
 
         class TwoBoxes:
             def detect(self, image):
-                return Detections(np.array(boxes), np.array([0.9, 0.9]), np.zeros(2, np.int64), np.array(["person"] * 2, dtype=object))
+                b = np.array(boxes if walker_boxed else boxes[1:])  # not boxed: the detector misses the walker
+                return Detections(b, np.full(len(b), 0.9), np.zeros(len(b), np.int64), np.array(["person"] * len(b), dtype=object))
 
-        geo = GeometricConfig(enabled=True, keep_static_boxes=keep_static, moving_memory_s=memory_s)
+        geo = GeometricConfig(enabled=True, keep_static_boxes=keep_static, moving_memory_s=memory_s, flag_points=flag_points)
         flt = DynamicFilter(DynamicConfig(enabled=True, source="detector", dilation_px=0, box_memory_s=0.0, geometric=geo), CAM, detector=TwoBoxes())
         out = []
         for k in range(20):
@@ -118,11 +120,17 @@ def test_static_detector_boxes_are_kept_and_moving_ones_masked():
             flt.observe(T)
             outside = (c == 0) & ~in_boxes(uv, np.array(boxes))  # the wall outside both boxes
             out.append((keep[outside].mean(), keep[c == 1].mean(), keep[c == 2].mean()))
-            if keep_static and memory_s > 0 and k >= 6:  # the verdict (the walker's flagged points are masked anyway)
+            if keep_static and memory_s > 0 and k >= 6 and walker_boxed:  # the verdict (the walker's flagged points are masked anyway)
                 np.testing.assert_array_equal(flt.static_boxes, [boxes[1]])
         return out
 
     on, off, forgetful = run(True), run(False), run(True, memory_s=0.0)
+    # flag_points=false: the same box verdicts; a walker the detector misses is flagged only with flag_points
+    assert run(True, flag_points=False) == on
+    missed, missed_unflagged = run(True, walker_boxed=False), run(True, flag_points=False, walker_boxed=False)
+    assert [w for _, w, _ in missed[7:15]] == [0.0] * 8  # flagged while it walks (and 6 frames after)
+    assert [w for _, w, _ in missed_unflagged] == [1.0] * 20
+    assert [s for _, _, s in missed[8:]] == [s for _, _, s in missed_unflagged[8:]] == [1.0] * 12
     assert [w for _, w, _ in forgetful[:15]] == [0.0] * 15 and min(w for _, w, _ in forgetful[16:]) >= 0.95
     for k in range(20):
         assert off[k][1] == 0.0 and off[k][2] == 0.0, k  # boxes mask everything in them
@@ -154,3 +162,13 @@ def test_region_is_every_keypoint_near_a_seed_in_the_image_and_in_depth():
     assert not geo.in_region(np.zeros((0, 2)), np.zeros(0)).size
     geo.reset()
     assert not geo.in_region(uv, z).any()
+
+
+def test_box_verdicts_only_needs_the_box_verdicts():
+    import pytest
+
+    from vslam.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="keep_static_boxes=true"):
+        GeometricConfig(enabled=True, flag_points=False)
+    assert not GeometricConfig(enabled=True, flag_points=False, keep_static_boxes=True).flag_points

@@ -44,11 +44,18 @@ class GeometricConfig:
     static_min_points: int = 8
     static_max_moving: float = 0.1
     moving_memory_s: float = 5.0  # a box that overlaps one of an object seen moving this recently stays masked
+    # False: the check only judges detector boxes (keep_static_boxes) and flags no keypoint itself. A COCO
+    # detector's false boxes on static things (YOLOX-nano's person box over TUM's teddy bear) are then released,
+    # without the check's own false flags on static points, which cost accuracy beside a detector
+    flag_points: bool = True
 
     def __post_init__(self) -> None:
         if self.static_min_points < 1 or not 0 <= self.static_max_moving < 1 or self.moving_memory_s < 0:
             raise ConfigError("slam.dynamic.geometric: static_min_points must be >= 1, static_max_moving in [0, 1) and "
                               "moving_memory_s >= 0")
+        if not self.flag_points and not self.keep_static_boxes:
+            raise ConfigError("slam.dynamic.geometric.flag_points=false leaves the check only its box verdicts: "
+                              "set keep_static_boxes=true (or disable the check)")
         if not self.frame_gaps or min(self.frame_gaps) < 1:
             raise ConfigError("slam.dynamic.geometric.frame_gaps must be a non-empty list of gaps >= 1")
         if not 1 <= self.min_votes <= len(self.frame_gaps):

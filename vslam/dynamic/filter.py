@@ -48,6 +48,8 @@ class DynamicFilter:
         self._recent: deque[tuple[float, Instances, Instances]] = deque()
         self._objects = Instances.from_boxes(np.zeros((0, 4)))  # this frame's detections
         self._static = np.zeros((0, 4))  # boxes of the last checked frame judged static
+        # (time, boxes) of the verdicts within the box memory: a box the memory holds keeps its verdict too
+        self._static_held: deque[tuple[float, np.ndarray]] = deque()
         self._movers: list[tuple[float, np.ndarray]] = []  # (time, box) of objects seen moving, followed by overlap
         self._t = 0.0
         self._feats: Features | None = None
@@ -122,8 +124,11 @@ class DynamicFilter:
                 self._recent.append((frame.timestamp, Instances.from_boxes(np.zeros((0, 4))), kept))
             followed = Instances.from_boxes(self._follow(feats, frame.timestamp))
             objs = Instances.concat(held + [self._objects, followed])
-            if len(self._static) and len(objs):  # a static verdict unmasks the instance, box or mask
-                objs = objs.subset(box_iou(objs.boxes, self._static).max(axis=1) < 0.5)
+            while self._static_held and frame.timestamp - self._static_held[0][0] > c.box_memory_s + 1e-6:
+                self._static_held.popleft()
+            static = np.vstack([self._static, *(b for _, b in self._static_held)]).reshape(-1, 4)
+            if len(static) and len(objs):  # a static verdict unmasks the instance, box or mask
+                objs = objs.subset(box_iou(objs.boxes, static).max(axis=1) < 0.5)
             whole = np.array([m is None for m in objs.masks], bool)
             self._region_boxes, self._region_grow = objs.boxes[whole], c.box_grow
             if not whole.all():  # the memory window's masks, one union
@@ -198,7 +203,7 @@ class DynamicFilter:
 
         pr = samples(raw)
         dyn = self._on_dynamic(pr)
-        if self.geo is not None:
+        if self.geo is not None and self.cfg.geometric.flag_points:
             dyn |= self.geo.in_region(samples(ideal), self._check_depth(frame, pr))
         return ~dyn.reshape(n, -1).all(axis=1)
 
@@ -208,7 +213,7 @@ class DynamicFilter:
         dyn = self.dynamic_source(frame, feats, objects)
         self._feats = feats
         self._depth = self._check_depth(frame, feats.raw)
-        if self.geo is not None:
+        if self.geo is not None and self.cfg.geometric.flag_points:
             dyn |= self.geo.in_region(feats.uv, self._depth)
         self._kept = ~dyn
         return self._kept.copy()
@@ -222,10 +227,15 @@ class DynamicFilter:
         if not tracked:
             self.geo.reset()
             self._static, self._movers = np.zeros((0, 4)), []
+            self._static_held.clear()
             return np.zeros(n_kept, bool)
         flagged = self.geo.check(T_world_cam, self._feats.uv, self._depth, self._feats.desc)
         if self.cfg.geometric.keep_static_boxes:
             self._static = self._static_boxes(self._feats, self.geo)
+            if len(self._static):
+                self._static_held.append((self._t, self._static))
+        if not self.cfg.geometric.flag_points:  # the check judged the boxes only
+            return np.zeros(n_kept, bool)
         return flagged[self._kept]
 
     @property

@@ -13,7 +13,8 @@ height, and with probability ``closeup`` 1-2 image heights, cut by the frame (so
 the dynamic benchmark's walkers come that close, and a detector that never saw a torso without head and feet
 misses them); brightness follows the background (gain 0.5-1.3) and the alpha edge is feathered by a 3x3 blur,
 so the pasted outline is not a shortcut. Optionally a person leans (``tilt``) or is partly hidden behind a patch
-of the scene (``occluded``): the benchmark's walkers lean when the camera rolls and pass behind the teddy bear.
+of the scene (``occluded``): people lean in the image of a hand-held camera that rolls, and the benchmark's walkers
+pass behind the teddy bear.
 
 Instance masks: a pasted person's mask is its visible part (alpha at least half, less what later pastes and
 patches cover), the pixels its box is the box of; the masks of the background's own instances lose the pixels
