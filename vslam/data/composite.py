@@ -176,8 +176,8 @@ class MakeDynamicConfig:
 def world_up(poses: np.ndarray) -> np.ndarray:
     """Gravity's up in the world frame of a hand-held or driven camera's poses (N,4,4) T_world_cam: the normal
     of the plane that the cameras' x axes (image right) span, since such cameras keep their roll small (a
-    TUM mocap frame's axes are not documented, and its first camera looks down at the scene: its -y is
-    ~25 degrees off vertical on fr3/teddy, which tilted the walkers). Signed to agree with the cameras' -y.
+    TUM mocap frame's axes are not documented, and a camera looking down at the scene has its -y off
+    vertical by its pitch). Signed to agree with the cameras' -y.
     A camera that never turns leaves the plane undefined: then the mean -y with the mean x taken out."""
     X = poses[:, :3, 0]
     cam_up = -poses[:, :3, 1].mean(0)
