@@ -169,14 +169,16 @@ def test_world_up_is_gravity_not_the_pitched_first_camera():
 def test_floor_height_is_the_lowest_surface_seen():
     from vslam.data.composite import floor_height
 
-    K2 = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    from vslam.data.types import PinholeCamera
+
+    cam = PinholeCamera(320, 240, 300.0, 300.0, 160.0, 120.0)
     T = np.eye(4)  # camera 1.5 m above a floor at world y = +1.5 (camera y down), looking along +z
     v, u = np.mgrid[0:240, 0:320]
     ray_y = (v - 120) / 300.0
     depth = np.where(ray_y > 0.05, 1.5 / np.maximum(ray_y, 1e-9), 0.0).astype(np.float32)  # floor below the horizon
     depth[depth > 10] = 0
-    assert floor_height(depth, K2, T, np.array([0, -1.0, 0])) == pytest.approx(-1.5, abs=1e-3)
-    assert floor_height(np.zeros((240, 320), np.float32), K2, T, np.array([0, -1.0, 0])) is None
+    assert floor_height(depth, cam, T, np.array([0, -1.0, 0])) == pytest.approx(-1.5, abs=1e-3)
+    assert floor_height(np.zeros((240, 320), np.float32), cam, T, np.array([0, -1.0, 0])) is None
 
 
 KITTI07 = data_root() / "kitti" / "sequences" / "07"

@@ -18,7 +18,7 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from vslam.data.types import Frame
+from vslam.data.types import Frame, PinholeCamera
 from vslam.errors import DatasetError
 from vslam.progress import Progress
 
@@ -191,15 +191,14 @@ def world_up(poses: np.ndarray) -> np.ndarray:
     return up if up @ cam_up >= 0 else -up
 
 
-def floor_height(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, up: np.ndarray) -> float | None:
-    """Height along ``up`` of the lowest surface a depth image (metres, 0 invalid) sees (its 2nd percentile:
-    the floor where the floor is in view), or None without enough valid depth."""
+def floor_height(depth: np.ndarray, cam: PinholeCamera, T_world_cam: np.ndarray, up: np.ndarray) -> float | None:
+    """Height along ``up`` of the lowest surface a depth image (metres, 0 invalid; undistorted ``cam``) sees (its
+    2nd percentile: the floor where the floor is in view), or None without enough valid depth."""
     v, u = np.nonzero(depth > 0)
     if len(u) < 1000:
         return None
-    z = depth[v, u].astype(np.float64)
-    X_cam = (np.linalg.inv(K) @ np.vstack([u, v, np.ones_like(u)])) * z
-    heights = (T_world_cam[:3, :3] @ X_cam).T @ up + T_world_cam[:3, 3] @ up
+    X_cam = cam.backproject(np.c_[u, v], depth[v, u])
+    heights = X_cam @ (T_world_cam[:3, :3].T @ up) + T_world_cam[:3, 3] @ up
     return float(np.percentile(heights, 2))
 
 
@@ -294,7 +293,7 @@ def composited_frames(seq_dir: str | Path, coco_root: str | Path, cfg: MakeDynam
         mask, boxes = np.zeros(img.shape[:2], bool), np.zeros((0, 4))
         if fr.T_world_cam is not None:
             if boards is None:
-                floor = floor_height(depth, cam.K, fr.T_world_cam, up) if fr.depth is not None else None
+                floor = floor_height(depth, cam, fr.T_world_cam, up) if fr.depth is not None else None
                 boards, t0 = place_people(cutouts, fr.T_world_cam, cfg, rng, up, floor), fr.timestamp
             if i >= start:
                 img, depth, mask, boxes = composite(img, depth, cam.K, fr.T_world_cam, fr.timestamp - t0, boards)
