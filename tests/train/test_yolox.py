@@ -144,3 +144,19 @@ def test_config_file_loads():
     assert cfg.data.wide_fit == (1248, 384) and cfg.threads <= 2
     with pytest.raises(yt.ConfigError, match="multiples of 32"):
         YoloxDataConfig(canvas=(100, 96))
+
+
+def test_train_only_keeps_every_other_tensor_and_names_a_wrong_prefix(tmp_path):
+    data = _toy_data()
+    heads = ("head.cls_convs", "head.cls_preds", "head.obj_preds")
+    cfg = _cfg(tmp_path, "c", iterations=3, ckpt_every=10, train_only=heads)
+    yt.train(cfg, data=data)
+    start = yt.load_start(cfg)[0].state_dict()
+    trained = _state(tmp_path / "c" / "model.pt")
+    # (the EMA's d * w + (1 - d) * w rounds a frozen tensor by an ulp or so)
+    moved = {k for k, v in start.items() if v.is_floating_point() and (v - trained[k]).abs().max() > 1e-5}
+    assert moved and all(k.startswith(heads) for k in moved), sorted(moved)[:5]
+    assert any(k.startswith("head.cls_preds") for k in moved)
+    assert not any(k.startswith(("head.reg_", "head.stems", "neck.")) for k in moved)  # the boxes stay the source's
+    with pytest.raises(yt.ConfigError, match="head.cls_pred "):
+        yt.train(_cfg(tmp_path, "d", iterations=1, train_only=("head.cls_pred ",)), data=data)
