@@ -55,9 +55,9 @@ class YoloxTrainConfig:
     warmup: int = 50
     clip: float = 10.0  # gradient norm
     freeze_backbone: bool = True
-    # only the parameters whose names start with one of these train ("" none given: all but a frozen backbone).
-    # [head.cls_convs, head.cls_preds, head.obj_preds]: what is a person here is learned while the boxes stay
-    # the source's (its COCO box precision, AP75, is what one CPU stage of all the head lost)
+    # only the parameters whose names start with one of these train (empty: all but a frozen backbone).
+    # [head.cls_convs, head.cls_preds, head.obj_preds] keeps the source's boxes (the COCO box precision, AP75,
+    # that a stage of the whole neck and head lost) while class and objectness learn
     train_only: tuple[str, ...] = ()
     ema_decay: float = 0.995
     ema_tau: float = 100.0
