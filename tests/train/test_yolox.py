@@ -160,3 +160,36 @@ def test_train_only_keeps_every_other_tensor_and_names_a_wrong_prefix(tmp_path):
     assert not any(k.startswith(("head.reg_", "head.stems", "neck.")) for k in moved)  # the boxes stay the source's
     with pytest.raises(yt.ConfigError, match="head.cls_pred "):
         yt.train(_cfg(tmp_path, "d", iterations=1, train_only=("head.cls_pred ",)), data=data)
+
+
+def test_box_distill_loss_is_one_minus_iou_where_the_teacher_sees_something():
+    boxes = torch.tensor([[[0.0, 0, 10, 10], [20, 20, 30, 30], [0, 0, 4, 4]]])
+    logits = torch.full((1, 3, 5 + 6), -9.0)
+    logits[0, :2, 4], logits[0, :2, 5] = 3.0, 3.0  # the teacher scores anchors 0 and 1 (~0.9), not 2
+    ref = {"boxes": boxes, "logits": logits}
+    assert float(yt.box_distill_loss({"boxes": boxes.clone(), "logits": logits}, ref)) == 0.0
+    moved = boxes.clone().requires_grad_(True)
+    shifted = moved + torch.tensor([[[5.0, 0, 5, 0], [0, 0, 0, 0], [50, 50, 50, 50]]])  # anchor 2 is not scored
+    loss = yt.box_distill_loss({"boxes": shifted, "logits": logits}, ref)
+    assert loss.item() == pytest.approx((1 - 50 / 150) / 2)  # IoU of [5,0,15,10] with [0,0,10,10]: 50 / 150
+    loss.backward()
+    assert moved.grad[0, 2].abs().sum() == 0 and moved.grad[0, 0].abs().sum() > 0
+    none = {"boxes": boxes, "logits": torch.full((1, 3, 11), -9.0)}
+    assert yt.box_distill_loss({"boxes": moved, "logits": logits}, none).item() == 0.0
+
+
+def test_box_distill_run_keeps_the_boxes_nearer_the_start(tmp_path):
+    data = _toy_data()
+    yt.train(_cfg(tmp_path, "free", iterations=6), data=data)
+    yt.train(_cfg(tmp_path, "kept", iterations=6, box_distill=20.0, box_distill_min_score=0.0), data=data)
+    cfg = _cfg(tmp_path, "x")
+    start = yt.load_start(cfg)[0].eval()
+    b = draw_batch(data, cfg.data, 7, 0, 2, 0)
+    x = {"image": torch.from_numpy(b.images).float()}
+    with torch.no_grad():
+        ref = start(x)
+        gaps = {}
+        for name in ("free", "kept"):
+            net = yt.load_start(dataclasses.replace(cfg, init=str(tmp_path / name / "model.pt")))[0].eval()
+            gaps[name] = float(yt.box_distill_loss(net(x), ref, min_score=0.0))
+    assert gaps["kept"] < 0.7 * gaps["free"], gaps

@@ -59,6 +59,12 @@ class YoloxTrainConfig:
     # [head.cls_convs, head.cls_preds, head.obj_preds] keeps the source's boxes (the COCO box precision, AP75,
     # that a stage of the whole neck and head lost) while class and objectness learn
     train_only: tuple[str, ...] = ()
+    # > 0: weight of a loss that keeps the boxes the trained network predicts where the starting network's
+    # ("teacher", frozen) boxes a thing (its score >= box_distill_min_score): 1 - IoU of the two boxes, averaged over those
+    # anchors. Class and objectness learn freely; the box precision the start learned on COCO is what a stage
+    # without it lost (COCO128 val AP75, models/README.md)
+    box_distill: float = 0.0
+    box_distill_min_score: float = 0.05
     ema_decay: float = 0.995
     ema_tau: float = 100.0
     seed: int = 0
@@ -80,6 +86,9 @@ class YoloxTrainConfig:
             raise ConfigError(f"train.device must be auto, cpu or cuda, got {self.device!r}")
         if not 1 <= self.threads <= 2:
             raise ConfigError(f"train.threads: 1 or 2 (the CPU is shared), got {self.threads}")
+        if self.box_distill < 0 or not 0 <= self.box_distill_min_score < 1:
+            raise ConfigError(f"train: box_distill must be >= 0 and box_distill_min_score in [0, 1), got "
+                              f"{self.box_distill} and {self.box_distill_min_score}")
         if self.batch < 1 or self.iterations < 1 or self.lr <= 0 or not 0 <= self.ema_decay < 1:
             raise ConfigError("train: batch, iterations and lr must be positive and ema_decay in [0, 1)")
 
@@ -194,14 +203,42 @@ def _train_mode(model: torch.nn.Module, cfg: YoloxTrainConfig) -> None:
                 p.requires_grad_(False)
 
 
-def batch_loss(model: torch.nn.Module, batch: Batch, dev: torch.device) -> dict[str, torch.Tensor]:
-    """The YOLOX loss of ``model`` on ``batch`` (images BGR 0..255 as the network runs)."""
+def batch_loss(model: torch.nn.Module, batch: Batch, dev: torch.device, teacher: torch.nn.Module | None = None,
+               distill: float = 0.0, min_score: float = 0.05) -> dict[str, torch.Tensor]:
+    """The YOLOX loss of ``model`` on ``batch`` (images BGR 0..255 as the network runs); with ``teacher`` also
+    ``distill`` x the box-distillation term ("distill", ``YoloxTrainConfig.box_distill``)."""
     from vslam.nn.detectors.yolox_loss import yolox_loss
 
     x = torch.from_numpy(batch.images).to(dev).float()
     targets = [(torch.from_numpy(b).to(dev), torch.from_numpy(c).to(dev)) for b, c in zip(batch.boxes, batch.labels)]
     ignore = [torch.from_numpy(g).to(dev) for g in batch.ignore]
-    return yolox_loss(model({"image": x}), targets, tuple(x.shape[2:]), ignore=ignore)
+    out = model({"image": x})
+    loss = yolox_loss(out, targets, tuple(x.shape[2:]), ignore=ignore)
+    if teacher is not None and distill > 0:
+        term = box_distill_loss(out, teacher({"image": x}), min_score)
+        loss["loss"] = loss["loss"] + distill * term
+        loss["distill"] = term.detach()
+    return loss
+
+
+def box_distill_loss(out: dict[str, torch.Tensor], ref: dict[str, torch.Tensor], min_score: float = 0.05) -> torch.Tensor:
+    """Mean 1 - IoU between ``out``'s and ``ref``'s boxes over the anchors where ``ref`` scores a class at
+    ``min_score`` or more (objectness x best class, as at inference); 0 where it scores none."""
+    with torch.no_grad():
+        logits = ref["logits"]
+        score = torch.sigmoid(logits[..., 4]) * torch.sigmoid(logits[..., 5:]).max(-1).values
+        sel = score >= min_score
+    if not sel.any():
+        return out["boxes"].sum() * 0.0
+    return (1.0 - _paired_iou(out["boxes"][sel], ref["boxes"][sel].detach())).mean()
+
+
+def _paired_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(N,) IoU of a[i] with b[i] (x1, y1, x2, y2)."""
+    lt, rb = torch.maximum(a[:, :2], b[:, :2]), torch.minimum(a[:, 2:], b[:, 2:])
+    inter = (rb - lt).clamp(min=0).prod(1)
+    area = lambda t: (t[:, 2:] - t[:, :2]).clamp(min=0).prod(1)  # noqa: E731
+    return inter / (area(a) + area(b) - inter + 1e-9)
 
 
 def _recipe(d: dict) -> dict:
@@ -253,6 +290,8 @@ def train(cfg: YoloxTrainConfig, progress: Progress | None = None, data: YoloxDa
     model.to(dev)
     if data is None:
         data = training_data(cfg, model)
+    # the start, frozen, for the box-distillation term (loaded before training moves a tensor)
+    teacher = copy.deepcopy(model).eval().requires_grad_(False) if cfg.box_distill > 0 else None
     _train_mode(model, cfg)
     ema = Ema(model, cfg.ema_decay, cfg.ema_tau)
     opt = _optimizer(cfg, model)
@@ -274,7 +313,7 @@ def train(cfg: YoloxTrainConfig, progress: Progress | None = None, data: YoloxDa
             batch = draw_batch(data, cfg.data, cfg.seed, it, cfg.batch, person)
             for g in opt.param_groups:
                 g["lr"] = _lr(cfg, it)
-            loss = batch_loss(model, batch, dev)
+            loss = batch_loss(model, batch, dev, teacher, cfg.box_distill, cfg.box_distill_min_score)
             opt.zero_grad(set_to_none=True)
             loss["loss"].backward()
             torch.nn.utils.clip_grad_norm_(params, cfg.clip)
