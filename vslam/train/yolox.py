@@ -59,10 +59,10 @@ class YoloxTrainConfig:
     # [head.cls_convs, head.cls_preds, head.obj_preds] keeps the source's boxes (the COCO box precision, AP75,
     # that a stage of the whole neck and head lost) while class and objectness learn
     train_only: tuple[str, ...] = ()
-    # > 0: weight of a loss that keeps the boxes the trained network predicts where the starting network's
-    # ("teacher", frozen) boxes a thing (its score >= box_distill_min_score): 1 - IoU of the two boxes, averaged over those
-    # anchors. Class and objectness learn freely; the box precision the start learned on COCO is what a stage
-    # without it lost (COCO128 val AP75, models/README.md)
+    # > 0: weight of a loss that keeps the trained network's boxes at the starting network's (frozen) wherever
+    # the start boxes a thing (its score >= box_distill_min_score): 1 - IoU of the two boxes, averaged over
+    # those anchors. Class and objectness learn freely; the box precision the start learned on COCO is what a
+    # stage without it lost (COCO128 val AP75, models/README.md)
     box_distill: float = 0.0
     box_distill_min_score: float = 0.05
     ema_decay: float = 0.995
@@ -215,7 +215,9 @@ def batch_loss(model: torch.nn.Module, batch: Batch, dev: torch.device, teacher:
     out = model({"image": x})
     loss = yolox_loss(out, targets, tuple(x.shape[2:]), ignore=ignore)
     if teacher is not None and distill > 0:
-        term = box_distill_loss(out, teacher({"image": x}), min_score)
+        with torch.no_grad():
+            ref = teacher({"image": x})
+        term = box_distill_loss(out, ref, min_score)
         loss["loss"] = loss["loss"] + distill * term
         loss["distill"] = term.detach()
     return loss
