@@ -223,7 +223,8 @@ def batch_loss(model: torch.nn.Module, batch: Batch, dev: torch.device, teacher:
     return loss
 
 
-def box_distill_loss(out: dict[str, torch.Tensor], ref: dict[str, torch.Tensor], min_score: float = 0.05) -> torch.Tensor:
+def box_distill_loss(out: dict[str, torch.Tensor], ref: dict[str, torch.Tensor],
+                     min_score: float = 0.05) -> torch.Tensor:
     """Mean 1 - IoU between ``out``'s and ``ref``'s boxes over the anchors where ``ref`` scores a class at
     ``min_score`` or more (objectness x best class, as at inference); 0 where it scores none."""
     with torch.no_grad():
