@@ -12,7 +12,7 @@ import pytest
 torch = pytest.importorskip("torch")
 tv_ops = pytest.importorskip("torchvision.ops", reason="torchvision (dev extra) is the reference")
 
-from vslam.nn.ops import batched_nms, box_iou, box_iou_np, nms  # noqa: E402
+from vslam.nn.ops import batched_nms, box_iou, box_iou_np, box_iou_paired, nms  # noqa: E402
 
 
 def _boxes(n: int, seed: int, size: float = 200.0) -> torch.Tensor:
@@ -28,6 +28,15 @@ def test_box_iou_equals_torchvision(seed):
     ref = tv_ops.box_iou(a, b)
     assert torch.allclose(box_iou(a, b), ref, atol=1e-6)
     assert np.allclose(box_iou_np(a.numpy(), b.numpy()), ref.numpy(), atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_box_iou_paired_is_the_diagonal(seed):
+    a, b = _boxes(40, seed), _boxes(40, seed + 100)
+    b[:5] = a[:5]  # some identical pairs (IoU 1), the rest mostly apart
+    paired = box_iou_paired(a, b)
+    assert torch.equal(paired, torch.diag(box_iou(a, b)))
+    assert torch.allclose(paired[:5], torch.ones(5), atol=1e-6) and (paired[5:] < 1).all()
 
 
 def test_box_iou_np_of_empty_boxes_is_zero_not_nan():

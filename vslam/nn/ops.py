@@ -44,6 +44,16 @@ def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return inter / (area_a[:, None] + area_b[None, :] - inter + 1e-9)
 
 
+def box_iou_paired(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(N,4), (N,4) -> (N,) IoU of a[i] with b[i]: ``box_iou``'s diagonal without its (N,N) matrix."""
+    lt = a[:, :2].maximum(b[:, :2])
+    rb = a[:, 2:].minimum(b[:, 2:])
+    inter = (rb - lt).clamp(min=0).prod(-1)
+    area_a = (a[:, 2:] - a[:, :2]).clamp(min=0).prod(-1)
+    area_b = (b[:, 2:] - b[:, :2]).clamp(min=0).prod(-1)
+    return inter / (area_a + area_b - inter + 1e-9)
+
+
 def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float) -> torch.Tensor:
     """Greedy NMS, exact (same result as torchvision.ops.nms): indices of kept boxes, by decreasing score.
 

@@ -227,21 +227,15 @@ def box_distill_loss(out: dict[str, torch.Tensor], ref: dict[str, torch.Tensor],
                      min_score: float = 0.05) -> torch.Tensor:
     """Mean 1 - IoU between ``out``'s and ``ref``'s boxes over the anchors where ``ref`` scores a class at
     ``min_score`` or more (objectness x best class, as at inference); 0 where it scores none."""
+    from vslam.nn.ops import box_iou_paired
+
     with torch.no_grad():
         logits = ref["logits"]
         score = torch.sigmoid(logits[..., 4]) * torch.sigmoid(logits[..., 5:]).max(-1).values
         sel = score >= min_score
     if not sel.any():
         return out["boxes"].sum() * 0.0
-    return (1.0 - _paired_iou(out["boxes"][sel], ref["boxes"][sel].detach())).mean()
-
-
-def _paired_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(N,) IoU of a[i] with b[i] (x1, y1, x2, y2)."""
-    lt, rb = torch.maximum(a[:, :2], b[:, :2]), torch.minimum(a[:, 2:], b[:, 2:])
-    inter = (rb - lt).clamp(min=0).prod(1)
-    area = lambda t: (t[:, 2:] - t[:, :2]).clamp(min=0).prod(1)  # noqa: E731
-    return inter / (area(a) + area(b) - inter + 1e-9)
+    return (1.0 - box_iou_paired(out["boxes"][sel], ref["boxes"][sel].detach())).mean()
 
 
 def _recipe(d: dict) -> dict:

@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from vslam.nn.ops import box_iou
+from vslam.nn.ops import box_iou, box_iou_paired
 
 
 def freeze_bn(model: nn.Module) -> nn.Module:
@@ -98,7 +98,7 @@ def yolox_loss(out: dict[str, torch.Tensor], targets: list[tuple[torch.Tensor, t
             continue
         n_fg += int(fg.sum())
         obj_t[i, fg] = 1.0
-        iou = torch.diag(box_iou(boxes[i, fg], gb[gt_of[fg]]))
+        iou = box_iou_paired(boxes[i, fg], gb[gt_of[fg]])
         box_l = box_l + (1 - iou ** 2).sum()
         cls_t = F.one_hot(gc[gt_of[fg]], logits.shape[2] - 5).float() * ious[fg, None]
         cls_l = cls_l + F.binary_cross_entropy_with_logits(logits[i, fg, 5:], cls_t, reduction="sum")
